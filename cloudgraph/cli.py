@@ -1,0 +1,128 @@
+"""The ``cloudgraph`` command line. Bad input exits with status 2 and one line on stderr."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+from .errors import CloudgraphError
+
+
+def _cmd_render(args: argparse.Namespace) -> None:
+    from .image import write_exr, write_png
+    from .mitsuba_scene import set_variant
+    from .render import render_volpath, scene_volume
+    from .scene import load_scene
+
+    scene = load_scene(args.scene)
+    if args.spp is not None:
+        if not 1 <= args.spp <= 65536:
+            raise CloudgraphError(f"--spp must be in 1..65536, got {args.spp}")
+        scene = scene.model_copy(update={"render": scene.render.model_copy(update={"spp": args.spp})})
+    volume = scene_volume(scene)
+    set_variant()
+    t0 = time.perf_counter()
+    if args.integrator == "volpath":
+        image = render_volpath(scene, volume, rr=args.rr)
+    else:
+        from .integrators.graph import render_graph
+
+        image = render_graph(scene, volume, quality=args.quality)
+    seconds = time.perf_counter() - t0
+    write_exr(image, args.out)
+    if args.png:
+        write_png(image, args.png, args.exposure)
+    print(f"{args.integrator}: {scene.camera.width}x{scene.camera.height} at {scene.render.spp} spp "
+          f"in {seconds:.2f} s -> {args.out}")
+
+
+def _cmd_info(args: argparse.Namespace) -> None:
+    from .volume import volume_info
+
+    info = volume_info(args.volume)
+    if args.json:
+        print(json.dumps(info, indent=2))
+        return
+    print(f"{info['path']}")
+    for g in info["grids"]:
+        print(f"  grid {g['name']!r}: {g['type']}")
+    print(f"  density grid: {info['grid']!r}")
+    print(f"  active bbox (index): {info['index_bbox'][0]} .. {info['index_bbox'][1]}")
+    lo, hi = info["world_bbox"]
+    print(f"  medium bbox (world): {[round(v, 4) for v in lo]} .. {[round(v, 4) for v in hi]}")
+    print(f"  voxel size: {[round(v, 6) for v in info['voxel_size']]}")
+    print(f"  values: {info['value_range'][0]:.6g} .. {info['value_range'][1]:.6g}, "
+          f"{100 * info['active_fraction']:.1f} % of the box non-zero")
+
+
+def _cmd_compare(args: argparse.Namespace) -> None:
+    from .image import read_exr
+    from .metrics import compare
+    from .mitsuba_scene import set_variant
+
+    set_variant()
+    m = compare(read_exr(args.image), read_exr(args.reference))
+    if args.json:
+        print(json.dumps(m))
+    else:
+        print("  ".join(f"{k} {v:.6g}" for k, v in m.items()))
+
+
+def _cmd_schema(args: argparse.Namespace) -> None:
+    from .scene import json_schema
+
+    print(json.dumps(json_schema(), indent=2))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="cloudgraph", description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser("render", help="render a scene spec to EXR (and PNG)")
+    r.add_argument("scene", help="scene spec v1 JSON file")
+    r.add_argument("--integrator", choices=("volpath", "graph"), default="volpath")
+    r.add_argument("--out", required=True, help="output EXR (linear radiance)")
+    r.add_argument("--png", help="also write an sRGB PNG here")
+    r.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")
+    r.add_argument("--spp", type=int, help="override render.spp")
+    r.add_argument("--quality", choices=("draft", "default", "high"), default="default",
+                   help="graph cache preset (graph integrator)")
+    r.add_argument("--rr", action="store_true", help="volpath: keep Mitsuba's Russian roulette on")
+    r.set_defaults(func=_cmd_render)
+
+    i = sub.add_parser("info", help="describe a .vdb or .vol volume")
+    i.add_argument("volume")
+    i.add_argument("--json", action="store_true")
+    i.set_defaults(func=_cmd_info)
+
+    c = sub.add_parser("compare", help="errors of an image against a reference (Eq. 5.1)")
+    c.add_argument("image")
+    c.add_argument("reference")
+    c.add_argument("--json", action="store_true")
+    c.set_defaults(func=_cmd_compare)
+
+    s = sub.add_parser("schema", help="print the JSON schema of scene spec v1")
+    s.set_defaults(func=_cmd_schema)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        args.func(args)
+    except CloudgraphError as err:
+        print(f"cloudgraph: error: {err}", file=sys.stderr)
+        return 2
+    except OSError as err:
+        print(f"cloudgraph: error: {err.strerror or err}: {err.filename or ''}".rstrip(": "), file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("cloudgraph: interrupted", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

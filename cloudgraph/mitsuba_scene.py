@@ -1,0 +1,134 @@
+"""Scene spec -> Mitsuba scene: a medium in a null-BSDF box, a directional light, a pinhole camera.
+
+Variant selection lives here too; entry points (CLI, worker start, test fixtures) call
+:func:`set_variant` once, never an import.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from .scene import CameraSpec, Scene
+from .volume import Volume
+
+#: Russian roulette depth that turns roulette off in practice (DESIGN.md, "What is known about
+#: accuracy": default RR is firefly-ridden and biased low in thick albedo-1 clouds).
+RR_OFF = 100000
+
+
+def set_variant(variant: str | None = None) -> str:
+    """Chooses the Mitsuba variant: the argument, else ``CLOUDGRAPH_VARIANT``, else
+    ``cuda_ad_rgb`` when a CUDA GPU is present, else ``llvm_ad_rgb``. Returns the variant."""
+    import drjit as dr
+    import mitsuba as mi
+
+    variant = variant or os.environ.get("CLOUDGRAPH_VARIANT")
+    if not variant:
+        variant = "cuda_ad_rgb" if dr.has_backend(dr.JitBackend.CUDA) else "llvm_ad_rgb"
+    if mi.variant() != variant:
+        mi.set_variant(variant)
+    return variant
+
+
+def mitsuba_max_depth(max_depth: int) -> int:
+    """Scene spec depth (most scattering events, -1 unbounded) -> Mitsuba's path depth,
+    where 1 means directly visible emitters only and 2 single scattering."""
+    return -1 if max_depth < 0 else max_depth + 1
+
+
+def medium_dict(volume: Volume, scene: Scene) -> dict:
+    """Mitsuba ``heterogeneous`` medium: sigma_t = density * density_scale, constant albedo."""
+    import mitsuba as mi
+
+    grid = np.ascontiguousarray(volume.density.transpose(2, 1, 0)[..., None], np.float32)  # (z, y, x, 1)
+    return {
+        "type": "heterogeneous",
+        "sigma_t": {
+            "type": "gridvolume",
+            "grid": mi.VolumeGrid(grid),
+            "filter_type": "trilinear",
+            "to_world": mi.ScalarTransform4f(volume.unit_to_world.tolist()),
+        },
+        "albedo": {"type": "constvolume", "value": {"type": "rgb", "value": list(scene.medium.albedo_rgb())}},
+        "scale": float(scene.medium.density_scale),
+        "phase": {"type": "isotropic"},
+    }
+
+
+def box_to_world(volume: Volume) -> np.ndarray:
+    """(4, 4) map from Mitsuba's cube [-1, 1]^3 onto the medium's extent."""
+    cube_to_unit = np.diag([0.5, 0.5, 0.5, 1.0])
+    cube_to_unit[:3, 3] = 0.5
+    return volume.unit_to_world @ cube_to_unit
+
+
+def sensor_dict(camera: CameraSpec, volume: Volume, spp: int, seed: int = 0) -> dict:
+    """Pinhole camera with fov along the width and a box pixel filter."""
+    import mitsuba as mi
+
+    lo, hi = volume.world_bbox()
+    far = float(np.linalg.norm(np.asarray(camera.eye) - (lo + hi) / 2) + np.linalg.norm(hi - lo)) * 2.0
+    return {
+        "type": "perspective",
+        "fov": float(camera.fov),
+        "fov_axis": "x",
+        "near_clip": far * 1e-6,
+        "far_clip": far,
+        "to_world": mi.ScalarTransform4f().look_at(
+            origin=list(camera.eye), target=list(camera.target), up=list(camera.up)
+        ),
+        "film": {
+            "type": "hdrfilm",
+            "width": int(camera.width),
+            "height": int(camera.height),
+            "rfilter": {"type": "box"},
+            "pixel_format": "rgb",
+            "component_format": "float32",
+        },
+        "sampler": {"type": "independent", "sample_count": int(spp), "seed": int(seed)},
+    }
+
+
+def scene_dict(scene: Scene, volume: Volume, integrator: dict | None = None) -> dict:
+    """The whole Mitsuba scene as a dict for ``mi.load_dict``.
+
+    ``integrator`` defaults to ``volpath`` with the scene's depth and Russian roulette off.
+    """
+    import mitsuba as mi
+
+    if integrator is None:
+        integrator = volpath_dict(scene.render.max_depth)
+    e = scene.light.irradiance_rgb()
+    return {
+        "type": "scene",
+        "integrator": integrator,
+        "sensor": sensor_dict(scene.camera, volume, scene.render.spp, scene.render.seed),
+        "light": {
+            "type": "directional",
+            "direction": list(scene.light.unit_direction()),
+            "irradiance": {"type": "rgb", "value": list(e)},
+        },
+        "medium_box": {
+            "type": "cube",
+            "to_world": mi.ScalarTransform4f(box_to_world(volume).tolist()),
+            "bsdf": {"type": "null"},
+            "interior": medium_dict(volume, scene),
+        },
+    }
+
+
+def volpath_dict(max_depth: int, rr: bool = False) -> dict:
+    """Mitsuba's ``volpath``; ``rr`` False turns Russian roulette off (the reference setting)."""
+    d = {"type": "volpath", "max_depth": mitsuba_max_depth(max_depth)}
+    if not rr:
+        d["rr_depth"] = RR_OFF
+    return d
+
+
+def load_mitsuba_scene(scene: Scene, volume: Volume, integrator: dict | None = None):
+    """Builds the Mitsuba scene (a variant must be set)."""
+    import mitsuba as mi
+
+    return mi.load_dict(scene_dict(scene, volume, integrator))

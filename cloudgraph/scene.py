@@ -1,0 +1,182 @@
+"""Scene spec v1: the one JSON contract shared by the CLI, the HTTP API and the worker.
+
+See DESIGN.md, "Scene spec v1". Units: world units for lengths, degrees for ``fov``,
+``density_scale`` multiplies grid values into sigma_t per world unit.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from .errors import SceneError
+
+Vec3 = tuple[float, float, float]
+Unit = Annotated[float, Field(ge=0.0, le=1.0)]
+NonNegative = Annotated[float, Field(ge=0.0)]
+
+
+def _norm(v: Vec3) -> float:
+    return math.sqrt(sum(c * c for c in v))
+
+
+def _finite(v: Vec3, what: str) -> Vec3:
+    if not all(math.isfinite(c) for c in v):
+        raise ValueError(f"{what} must be three finite numbers, got {list(v)}")
+    return v
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class VolumeSpec(_Model):
+    """Where the density grid comes from: a file ``path`` (CLI) or an uploaded volume ``id`` (API)."""
+
+    path: str | None = Field(None, description="A .vdb or .vol file, relative to the scene file")
+    id: str | None = Field(None, description="An uploaded volume's id (HTTP API)")
+    grid: str | None = Field(None, description="Grid name; default 'density', else the only float grid")
+    scale: float = Field(1.0, gt=0.0, description="Uniform scale about the origin, after the grid's transform")
+
+    @model_validator(mode="after")
+    def _one_source(self) -> VolumeSpec:
+        if (self.path is None) == (self.id is None):
+            raise ValueError("give exactly one of 'path' (a .vdb/.vol file) or 'id' (an uploaded volume)")
+        return self
+
+
+class MediumSpec(_Model):
+    """sigma_t(x) = density(x) * density_scale; albedo = sigma_s / sigma_t; isotropic phase."""
+
+    density_scale: NonNegative = 1.0
+    albedo: Unit | tuple[Unit, Unit, Unit] = 1.0
+
+    def albedo_rgb(self) -> Vec3:
+        a = self.albedo
+        return (a, a, a) if isinstance(a, float | int) else tuple(a)
+
+
+class LightSpec(_Model):
+    """A directional light; ``direction`` is where the light travels (Mitsuba's convention)."""
+
+    type: Literal["directional"] = "directional"
+    direction: Vec3 = (0.0, -1.0, 0.0)
+    irradiance: NonNegative | tuple[NonNegative, NonNegative, NonNegative] = 1.0
+
+    @field_validator("direction")
+    @classmethod
+    def _nonzero(cls, v: Vec3) -> Vec3:
+        _finite(v, "direction")
+        if _norm(v) < 1e-9:
+            raise ValueError("direction must be a non-zero vector (the way the light travels)")
+        return v
+
+    def irradiance_rgb(self) -> Vec3:
+        e = self.irradiance
+        return (e, e, e) if isinstance(e, float | int) else tuple(e)
+
+    def unit_direction(self) -> Vec3:
+        n = _norm(self.direction)
+        return tuple(c / n for c in self.direction)
+
+
+class CameraSpec(_Model):
+    """Pinhole camera, look_at(eye, target, up), ``fov`` in degrees along the image width."""
+
+    eye: Vec3
+    target: Vec3
+    up: Vec3 = (0.0, 1.0, 0.0)
+    fov: float = Field(40.0, gt=0.0, lt=180.0)
+    width: int = Field(256, ge=1, le=4096)
+    height: int = Field(256, ge=1, le=4096)
+
+    @model_validator(mode="after")
+    def _geometry(self) -> CameraSpec:
+        _finite(self.eye, "eye")
+        _finite(self.target, "target")
+        _finite(self.up, "up")
+        view = tuple(t - e for t, e in zip(self.target, self.eye, strict=True))
+        if _norm(view) < 1e-9:
+            raise ValueError("eye and target must differ (the camera needs a viewing direction)")
+        if _norm(self.up) < 1e-9:
+            raise ValueError("up must be a non-zero vector")
+        cross = (
+            view[1] * self.up[2] - view[2] * self.up[1],
+            view[2] * self.up[0] - view[0] * self.up[2],
+            view[0] * self.up[1] - view[1] * self.up[0],
+        )
+        if _norm(cross) < 1e-6 * _norm(view) * _norm(self.up):
+            raise ValueError("up must not be parallel to the viewing direction (target - eye)")
+        return self
+
+
+class RenderSpec(_Model):
+    """Sampling settings; ``max_depth`` is the most scattering events on a path, -1 unbounded."""
+
+    spp: int = Field(64, ge=1, le=65536)
+    max_depth: int = Field(-1, ge=-1)
+    seed: int = Field(0, ge=0, lt=2**31)
+
+
+class Scene(_Model):
+    """Scene spec v1."""
+
+    volume: VolumeSpec
+    medium: MediumSpec = MediumSpec()
+    light: LightSpec = LightSpec()
+    camera: CameraSpec
+    render: RenderSpec = RenderSpec()
+
+
+def format_validation_error(err: ValidationError) -> str:
+    """One line per problem, each naming the field: ``camera.fov: must be < 180``."""
+    parts = []
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"] if not isinstance(p, int) or len(e["loc"]) < 3)
+        msg = e["msg"].removeprefix("Value error, ")
+        parts.append(f"{loc}: {msg}" if loc else msg)
+    return "; ".join(parts)
+
+
+def parse_scene(data: dict | str, base_dir: str | Path | None = None) -> Scene:
+    """Validates a scene spec (a dict or JSON text) and resolves ``volume.path`` against ``base_dir``.
+
+    Raises:
+        SceneError: with a message naming every invalid field.
+    """
+    try:
+        scene = Scene.model_validate_json(data) if isinstance(data, str) else Scene.model_validate(data)
+    except ValidationError as err:
+        raise SceneError(f"invalid scene: {format_validation_error(err)}") from None
+    if scene.volume.path is not None and base_dir is not None:
+        path = Path(base_dir) / scene.volume.path
+        scene = scene.model_copy(update={"volume": scene.volume.model_copy(update={"path": str(path)})})
+    return scene
+
+
+def load_scene(path: str | Path) -> Scene:
+    """Reads a scene spec JSON file; ``volume.path`` is relative to the file's folder."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise SceneError(f"scene file not found: {path}") from None
+    except OSError as err:
+        raise SceneError(f"cannot read scene file {path}: {err.strerror}") from None
+    try:
+        json.loads(text)
+    except json.JSONDecodeError as err:
+        raise SceneError(f"{path} is not valid JSON: {err.msg} at line {err.lineno}, column {err.colno}") from None
+    return parse_scene(text, base_dir=path.parent)
+
+
+def json_schema() -> dict:
+    """The JSON schema of scene spec v1."""
+    schema = Scene.model_json_schema()
+    schema["$id"] = "https://cloudgraph.dev/schema/scene-v1.json"
+    schema["title"] = "cloudgraph scene spec v1"
+    return schema

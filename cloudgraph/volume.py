@@ -1,0 +1,391 @@
+"""Volumes: OpenVDB (.vdb), Mitsuba (.vol) and procedural test volumes, placed in world space.
+
+Placement (DESIGN.md, "Scene spec v1"): world = volume.scale * (grid's index-to-world map).
+Voxel (i, j, k) holds its value at index point (i, j, k); values are interpolated trilinearly
+between voxel centres; the medium fills the active-voxel bounding box grown by half a voxel on
+every side. A :class:`Volume` keeps that box densely, as a float32 array indexed [i, j, k].
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import VolumeError
+
+VDB_MAGIC = 0x56444220
+#: Refuse to densify a bounding box with more voxels than this (float32: 4 bytes each).
+DEFAULT_MAX_VOXELS = 256 * 1024 * 1024
+
+
+def max_voxels() -> int:
+    """The densify cap, from ``CLOUDGRAPH_MAX_VOXELS`` (a count of voxels)."""
+    raw = os.environ.get("CLOUDGRAPH_MAX_VOXELS")
+    return int(raw) if raw else DEFAULT_MAX_VOXELS
+
+
+@dataclass(frozen=True, eq=False)
+class Volume:
+    """A dense density grid with its placement.
+
+    Attributes:
+        density: (nx, ny, nz) float32, >= 0; density[i, j, k] is the value at index point
+            index_min + (i, j, k).
+        index_min: index coordinates of density[0, 0, 0].
+        index_to_world: (4, 4) float64 affine map from index space to world units, including
+            the scene's ``volume.scale``.
+        grid: the grid's name.
+    """
+
+    density: np.ndarray
+    index_min: tuple[int, int, int]
+    index_to_world: np.ndarray
+    grid: str = "density"
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return tuple(int(n) for n in self.density.shape)
+
+    @property
+    def voxel_size(self) -> np.ndarray:
+        """(3,) world length of one voxel step along i, j and k."""
+        return np.linalg.norm(self.index_to_world[:3, :3], axis=0)
+
+    @property
+    def unit_to_world(self) -> np.ndarray:
+        """(4, 4) map from the unit cube [0, 1]^3 onto the medium's extent in world space.
+
+        Mitsuba's grid volumes put voxel centres at (i + 0.5) / n of the unit cube, so the unit
+        cube spans index_min - 0.5 .. index_min + n - 0.5 (the half-voxel rule).
+        """
+        unit_to_index = np.diag([*self.shape, 1.0])
+        unit_to_index[:3, 3] = np.asarray(self.index_min, float) - 0.5
+        return self.index_to_world @ unit_to_index
+
+    def world_corners(self) -> np.ndarray:
+        """(8, 3) world positions of the medium box's corners."""
+        u = np.array([[x, y, z, 1.0] for x in (0, 1) for y in (0, 1) for z in (0, 1)])
+        return (u @ self.unit_to_world.T)[:, :3]
+
+    def world_bbox(self) -> tuple[np.ndarray, np.ndarray]:
+        c = self.world_corners()
+        return c.min(axis=0), c.max(axis=0)
+
+    def scaled(self, scale: float) -> Volume:
+        """The same volume with world space scaled by ``scale`` about the origin."""
+        if scale == 1.0:
+            return self
+        s = np.diag([scale, scale, scale, 1.0])
+        return Volume(self.density, self.index_min, s @ self.index_to_world, self.grid)
+
+
+# ------------------------------------------------------------------------ loading
+
+def load_volume(path: str | Path, grid: str | None = None, scale: float = 1.0) -> Volume:
+    """Reads a ``.vdb`` or ``.vol`` file into a :class:`Volume` placed in world space.
+
+    Raises:
+        VolumeError: missing, unreadable, truncated or corrupt file; no such grid; a grid that
+            does not hold float density; an empty grid; a bounding box over the densify cap.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise VolumeError(f"volume file not found: {path}")
+    with open(path, "rb") as f:
+        head = f.read(8)
+    if len(head) == 8 and struct.unpack("<q", head)[0] == VDB_MAGIC:
+        vol = _load_vdb(path, grid)
+    elif head[:3] == b"VOL":
+        vol = _load_vol(path)
+    else:
+        raise VolumeError(f"{path} is neither an OpenVDB (.vdb) nor a Mitsuba (.vol) volume file")
+    return vol.scaled(scale)
+
+
+def vdb_grid_table(path: str | Path) -> list[tuple[str, str]]:
+    """(name, tree type) of every grid in a .vdb file, read from its header alone.
+
+    This works where the Python bindings refuse a whole file because one grid has a type
+    they were not built with (Debian's bindings have no double grids).
+    """
+    with open(path, "rb") as f:
+        data = f.read(1 << 20)
+    pos = 8
+
+    def u32() -> int:
+        nonlocal pos
+        (v,) = struct.unpack_from("<I", data, pos)
+        pos += 4
+        return v
+
+    def string() -> str:
+        nonlocal pos
+        n = u32()
+        s = data[pos : pos + n].decode("utf-8", "replace")
+        pos += n
+        return s
+
+    try:
+        version = u32()
+        if version >= 211:
+            pos += 8  # library major, minor
+        has_offsets = True
+        if version >= 212:
+            has_offsets = bool(data[pos])
+            pos += 1
+        if version < 222:
+            pos += 4  # file-level compression flags
+        pos += 36  # UUID
+        for _ in range(u32()):  # file metadata: name, type, sized value
+            string()
+            string()
+            size = u32()
+            pos += size
+        if not has_offsets:
+            return []
+        grids = []
+        for _ in range(u32()):
+            name, tree_type = string(), string()
+            if version >= 216:
+                string()  # instance parent (grid instancing, file version 216)
+            _, _, end = struct.unpack_from("<qqq", data, pos)
+            grids.append((name, tree_type.removesuffix("_HalfFloat")))
+            with open(path, "rb") as f:  # descriptors sit between grids: jump to the next one
+                f.seek(end)
+                data = f.read(1 << 16)
+            pos = 0
+        return grids
+    except (struct.error, IndexError, ValueError, OSError):
+        return []
+
+
+def _value_type(tree_type: str) -> str:
+    parts = tree_type.split("_")
+    return parts[1] if len(parts) > 2 and parts[0] == "Tree" else tree_type
+
+
+def _pick_grid(path: Path, grids: list[tuple[str, str]], grid: str | None) -> tuple[str, str]:
+    """Chooses the named grid, else 'density', else the only float grid."""
+    listing = ", ".join(f"{n!r} ({_value_type(t)})" for n, t in grids) or "none"
+    by_name = dict(grids)
+    if grid is not None:
+        if grid not in by_name:
+            raise VolumeError(f"{path} has no grid named {grid!r}; its grids: {listing}")
+        return grid, by_name[grid]
+    if "density" in by_name:
+        return "density", by_name["density"]
+    floats = [(n, t) for n, t in grids if _value_type(t) in ("float", "half", "double")]
+    if len(floats) == 1:
+        return floats[0]
+    raise VolumeError(
+        f"{path} has no grid named 'density' and {len(floats)} scalar grids; "
+        f"name one with volume.grid (its grids: {listing})"
+    )
+
+
+def _load_vdb(path: Path, grid: str | None) -> Volume:
+    import pyopenvdb as vdb
+
+    table = vdb_grid_table(path)
+    if not table:
+        raise VolumeError(f"cannot read {path}: the OpenVDB file is truncated or corrupt")
+    name, tree_type = _pick_grid(path, table, grid)
+    value_type = _value_type(tree_type)
+    if value_type not in ("float", "half", "double"):
+        raise VolumeError(
+            f"grid {name!r} in {path} holds {value_type} values; density needs a scalar float grid"
+        )
+    try:
+        g = vdb.read(str(path), name)
+    except TypeError as err:  # a grid type these bindings were built without
+        bad = [f"{n!r} ({_value_type(t)})" for n, t in table if _value_type(t) not in ("float", "vec3s", "bool")]
+        raise VolumeError(
+            f"cannot read {path}: its grid(s) {', '.join(bad) or str(err)} have a type this OpenVDB "
+            "build cannot read (Debian's bindings read float and half grids, not double); "
+            "resave the grids as float"
+        ) from None
+    except (LookupError, RuntimeError, OSError, ValueError) as err:
+        raise VolumeError(f"cannot read {path}: the OpenVDB file is truncated or corrupt ({err})") from None
+    if g.valueTypeName != "float":
+        raise VolumeError(f"grid {name!r} in {path} holds {g.valueTypeName} values; density needs a float grid")
+    if g.activeVoxelCount() == 0:
+        raise VolumeError(f"grid {name!r} in {path} is empty (no active voxels)")
+    if not g.transform.isLinear:
+        raise VolumeError(f"grid {name!r} in {path} has a non-linear (frustum) transform, which is not supported")
+    lo, hi = g.evalActiveVoxelBoundingBox()
+    dims = tuple(int(b - a + 1) for a, b in zip(lo, hi, strict=True))
+    _check_size(path, dims)
+    density = np.zeros(dims, dtype=np.float32)
+    g.copyToArray(density, ijk=lo)
+    return Volume(_clean(path, density), tuple(int(v) for v in lo), _affine(g.transform), name)
+
+
+def _affine(transform) -> np.ndarray:
+    """(4, 4) matrix of a linear OpenVDB transform, from the images of the origin and unit axes."""
+    o = np.array(transform.indexToWorld((0.0, 0.0, 0.0)))
+    m = np.eye(4)
+    m[:3, 3] = o
+    for axis in range(3):
+        e = [0.0, 0.0, 0.0]
+        e[axis] = 1.0
+        m[:3, axis] = np.array(transform.indexToWorld(tuple(e))) - o
+    return m
+
+
+def _check_size(path: Path, dims: tuple[int, int, int]) -> None:
+    n = int(np.prod(np.asarray(dims, dtype=np.int64)))
+    cap = max_voxels()
+    if n > cap:
+        raise VolumeError(
+            f"{path}: its active bounding box {dims[0]}x{dims[1]}x{dims[2]} ({n} voxels, "
+            f"{4 * n / 2**30:.1f} GiB dense) is over the limit of {cap} voxels "
+            "(CLOUDGRAPH_MAX_VOXELS); crop or resample the grid"
+        )
+
+
+def _clean(path: Path, density: np.ndarray) -> np.ndarray:
+    if not np.isfinite(density).all():
+        raise VolumeError(f"{path}: the density grid holds NaN or infinite values")
+    return np.maximum(density, 0.0, out=density)
+
+
+def _load_vol(path: Path) -> Volume:
+    """Mitsuba's binary grid format: 'VOL', version 3, encoding 1 (float32), resolution, channels, bbox."""
+    raw = path.read_bytes()
+    if len(raw) < 48:
+        raise VolumeError(f"cannot read {path}: the .vol header is truncated")
+    version, encoding, nx, ny, nz, channels = struct.unpack_from("<Bi4i", raw, 3)[0:1] + struct.unpack_from("<5i", raw, 4)
+    if version != 3 or encoding != 1:
+        raise VolumeError(f"{path}: only .vol version 3 with float32 data is supported (got version {version}, encoding {encoding})")
+    if channels != 1:
+        raise VolumeError(f"{path}: a density .vol has 1 channel, this one has {channels}")
+    if min(nx, ny, nz) < 1:
+        raise VolumeError(f"{path}: invalid resolution {nx}x{ny}x{nz}")
+    _check_size(path, (nx, ny, nz))
+    expected = 48 + 4 * nx * ny * nz
+    if len(raw) < expected:
+        raise VolumeError(f"cannot read {path}: the .vol file is truncated ({len(raw)} of {expected} bytes)")
+    bmin = np.array(struct.unpack_from("<3f", raw, 24), float)
+    bmax = np.array(struct.unpack_from("<3f", raw, 36), float)
+    data = np.frombuffer(raw, np.float32, nx * ny * nz, 48).reshape(nz, ny, nx).transpose(2, 1, 0)
+    density = np.ascontiguousarray(data, dtype=np.float32)
+    if density.max(initial=0.0) <= 0.0:
+        raise VolumeError(f"{path}: the density grid is empty (all values zero)")
+    # Voxel centres at bmin + (i + 0.5) * step, so the medium fills exactly [bmin, bmax].
+    step = (bmax - bmin) / np.array([nx, ny, nz])
+    m = np.diag([*step, 1.0])
+    m[:3, 3] = bmin + 0.5 * step
+    return Volume(_clean(path, density), (0, 0, 0), m, "density")
+
+
+def write_vol(volume: Volume, path: str | Path) -> None:
+    """Writes an axis-aligned volume as a Mitsuba .vol file (its bbox is the medium's extent)."""
+    lo, hi = volume.world_bbox()
+    nx, ny, nz = volume.shape
+    header = b"VOL" + struct.pack("<Bi4i6f", 3, 1, nx, ny, nz, 1, *lo, *hi)
+    body = np.ascontiguousarray(volume.density.transpose(2, 1, 0), np.float32).tobytes()
+    Path(path).write_bytes(header + body)
+
+
+def write_vdb(volume: Volume, path: str | Path, half: bool = False) -> None:
+    """Writes a volume as a float grid in an OpenVDB file (``half``: stored as half floats)."""
+    import pyopenvdb as vdb
+
+    g = vdb.FloatGrid()
+    g.name = volume.grid
+    g.copyFromArray(np.ascontiguousarray(volume.density, np.float32), ijk=volume.index_min, tolerance=0.0)
+    g.transform = vdb.createLinearTransform(volume.index_to_world.T.tolist())  # OpenVDB: row vectors
+    g.gridClass = vdb.GridClass.FOG_VOLUME
+    g.saveFloatAsHalf = half
+    vdb.write(str(path), grids=[g])
+
+
+# --------------------------------------------------------------- procedural volumes
+
+def sphere_volume(n: int = 32, density: float = 1.0, voxel_size: float = 1.0, soft: float = 0.0) -> Volume:
+    """A fog sphere filling an n^3 grid centred on the origin, radius n/2 - 1 voxels.
+
+    ``soft`` > 0 fades the edge over that many voxels; 0 gives a hard, homogeneous ball.
+    """
+    c = (n - 1) / 2.0
+    i = np.arange(n) - c
+    r = np.sqrt(i[:, None, None] ** 2 + i[None, :, None] ** 2 + i[None, None, :] ** 2)
+    radius = n / 2.0 - 1.0
+    if soft > 0:
+        d = np.clip((radius - r) / soft, 0.0, 1.0)
+    else:
+        d = (r <= radius).astype(np.float32)
+    m = np.diag([voxel_size] * 3 + [1.0])
+    m[:3, 3] = -c * voxel_size
+    return Volume((density * d).astype(np.float32), (0, 0, 0), m, "density")
+
+
+def box_volume(dims: tuple[int, int, int], density: float = 1.0, index_min=(0, 0, 0),
+               index_to_world: np.ndarray | None = None) -> Volume:
+    """A homogeneous block of voxels (a slab or a cube) with any affine placement."""
+    m = np.eye(4) if index_to_world is None else np.asarray(index_to_world, float)
+    return Volume(np.full(dims, density, np.float32), tuple(index_min), m, "density")
+
+
+def noise_volume(n: int = 64, seed: int = 7, density: float = 1.0, voxel_size: float = 1.0) -> Volume:
+    """A fixed-seed cloud: fractal value noise (4 octaves) shaped by a soft ellipsoid, in [0, density]."""
+    rng = np.random.default_rng(seed)
+    x = np.linspace(0.0, 1.0, n, dtype=np.float32)
+    field = np.zeros((n, n, n), np.float32)
+    amp, total = 1.0, 0.0
+    for octave in range(4):  # a loop over octaves, not voxels
+        cells = 4 * 2**octave
+        lattice = rng.random((cells + 1,) * 3, dtype=np.float32)
+        field += amp * _trilinear_upsample(lattice, x * cells)
+        total += amp
+        amp *= 0.5
+    field /= total
+    c = x[:, None, None] - 0.5, x[None, :, None] - 0.5, x[None, None, :] - 0.5
+    r = np.sqrt((c[0] / 0.42) ** 2 + (c[1] / 0.32) ** 2 + (c[2] / 0.42) ** 2)
+    shape = np.clip(1.0 - r, 0.0, 1.0)
+    d = np.clip((field * 1.6 - 0.55) + shape * 0.9 - 0.35, 0.0, None) * (r < 1.0)
+    d /= d.max()
+    m = np.diag([voxel_size] * 3 + [1.0])
+    m[:3, 3] = -(n - 1) / 2.0 * voxel_size
+    return Volume((density * d).astype(np.float32), (0, 0, 0), m, "density")
+
+
+def _trilinear_upsample(lattice: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Samples a lattice at t (lattice units, along each axis) with smoothstep interpolation."""
+    i0 = np.minimum(np.floor(t).astype(int), lattice.shape[0] - 2)
+    f = t - i0
+    f = f * f * (3 - 2 * f)
+    out = 0.0
+    for dx in (0, 1):
+        for dy in (0, 1):
+            for dz in (0, 1):
+                w = ((f if dx else 1 - f)[:, None, None] * (f if dy else 1 - f)[None, :, None]
+                     * (f if dz else 1 - f)[None, None, :])
+                out = out + w * lattice[np.ix_(i0 + dx, i0 + dy, i0 + dz)]
+    return out.astype(np.float32)
+
+
+def volume_info(path: str | Path) -> dict:
+    """What a volume file holds: its grids with types, and for the density grid the active
+    bounding box in index and world space, the voxel size and the value range."""
+    path = Path(path)
+    grids = []
+    if path.is_file() and path.read_bytes()[:3] != b"VOL":
+        grids = [{"name": n, "type": _value_type(t)} for n, t in vdb_grid_table(path)]
+    vol = load_volume(path)
+    lo, hi = vol.world_bbox()
+    index_max = [a + n - 1 for a, n in zip(vol.index_min, vol.shape, strict=True)]
+    return {
+        "path": str(path),
+        "grids": grids or [{"name": vol.grid, "type": "float"}],
+        "grid": vol.grid,
+        "index_bbox": [list(vol.index_min), index_max],
+        "world_bbox": [lo.tolist(), hi.tolist()],
+        "voxel_size": vol.voxel_size.tolist(),
+        "value_range": [float(vol.density.min()), float(vol.density.max())],
+        "active_fraction": float((vol.density > 0).mean()),
+    }
