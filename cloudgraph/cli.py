@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 import time
+from pathlib import Path
 
 from .errors import CloudgraphError
 
@@ -16,6 +17,10 @@ def _cmd_render(args: argparse.Namespace) -> None:
     from .render import render_volpath, scene_volume
     from .scene import load_scene
 
+    for out in filter(None, (args.out, args.png)):  # fail before rendering, not after
+        folder = Path(out).resolve().parent
+        if not folder.is_dir():
+            raise CloudgraphError(f"output folder does not exist: {folder}")
     scene = load_scene(args.scene)
     if args.spp is not None:
         if not 1 <= args.spp <= 65536:
@@ -34,8 +39,10 @@ def _cmd_render(args: argparse.Namespace) -> None:
     write_exr(image, args.out)
     if args.png:
         write_png(image, args.png, args.exposure)
-    print(f"{args.integrator}: {scene.camera.width}x{scene.camera.height} at {scene.render.spp} spp "
-          f"in {seconds:.2f} s -> {args.out}")
+    print(
+        f"{args.integrator}: {scene.camera.width}x{scene.camera.height} at {scene.render.spp} spp "
+        f"in {seconds:.2f} s -> {args.out}"
+    )
 
 
 def _cmd_info(args: argparse.Namespace) -> None:
@@ -53,8 +60,10 @@ def _cmd_info(args: argparse.Namespace) -> None:
     lo, hi = info["world_bbox"]
     print(f"  medium bbox (world): {[round(v, 4) for v in lo]} .. {[round(v, 4) for v in hi]}")
     print(f"  voxel size: {[round(v, 6) for v in info['voxel_size']]}")
-    print(f"  values: {info['value_range'][0]:.6g} .. {info['value_range'][1]:.6g}, "
-          f"{100 * info['active_fraction']:.1f} % of the box non-zero")
+    print(
+        f"  values: {info['value_range'][0]:.6g} .. {info['value_range'][1]:.6g}, "
+        f"{100 * info['active_fraction']:.1f} % of the box non-zero"
+    )
 
 
 def _cmd_compare(args: argparse.Namespace) -> None:
@@ -87,8 +96,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--png", help="also write an sRGB PNG here")
     r.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")
     r.add_argument("--spp", type=int, help="override render.spp")
-    r.add_argument("--quality", choices=("draft", "default", "high"), default="default",
-                   help="graph cache preset (graph integrator)")
+    r.add_argument(
+        "--quality",
+        choices=("draft", "default", "high"),
+        default="default",
+        help="graph cache preset (graph integrator)",
+    )
     r.add_argument("--rr", action="store_true", help="volpath: keep Mitsuba's Russian roulette on")
     r.set_defaults(func=_cmd_render)
 

@@ -40,7 +40,9 @@ class VolumeSpec(_Model):
     path: str | None = Field(None, description="A .vdb or .vol file, relative to the scene file")
     id: str | None = Field(None, description="An uploaded volume's id (HTTP API)")
     grid: str | None = Field(None, description="Grid name; default 'density', else the only float grid")
-    scale: float = Field(1.0, gt=0.0, description="Uniform scale about the origin, after the grid's transform")
+    scale: float = Field(
+        1.0, gt=0.0, description="Uniform scale about the origin, after the grid's transform"
+    )
 
     @model_validator(mode="after")
     def _one_source(self) -> VolumeSpec:
@@ -170,7 +172,9 @@ def load_scene(path: str | Path) -> Scene:
     try:
         json.loads(text)
     except json.JSONDecodeError as err:
-        raise SceneError(f"{path} is not valid JSON: {err.msg} at line {err.lineno}, column {err.colno}") from None
+        raise SceneError(
+            f"{path} is not valid JSON: {err.msg} at line {err.lineno}, column {err.colno}"
+        ) from None
     return parse_scene(text, base_dir=path.parent)
 
 

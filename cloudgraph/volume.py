@@ -85,6 +85,7 @@ class Volume:
 
 # ------------------------------------------------------------------------ loading
 
+
 def load_volume(path: str | Path, grid: str | None = None, scale: float = 1.0) -> Volume:
     """Reads a ``.vdb`` or ``.vol`` file into a :class:`Volume` placed in world space.
 
@@ -202,7 +203,9 @@ def _load_vdb(path: Path, grid: str | None) -> Volume:
     try:
         g = vdb.read(str(path), name)
     except TypeError as err:  # a grid type these bindings were built without
-        bad = [f"{n!r} ({_value_type(t)})" for n, t in table if _value_type(t) not in ("float", "vec3s", "bool")]
+        bad = [
+            f"{n!r} ({_value_type(t)})" for n, t in table if _value_type(t) not in ("float", "vec3s", "bool")
+        ]
         raise VolumeError(
             f"cannot read {path}: its grid(s) {', '.join(bad) or str(err)} have a type this OpenVDB "
             "build cannot read (Debian's bindings read float and half grids, not double); "
@@ -211,11 +214,15 @@ def _load_vdb(path: Path, grid: str | None) -> Volume:
     except (LookupError, RuntimeError, OSError, ValueError) as err:
         raise VolumeError(f"cannot read {path}: the OpenVDB file is truncated or corrupt ({err})") from None
     if g.valueTypeName != "float":
-        raise VolumeError(f"grid {name!r} in {path} holds {g.valueTypeName} values; density needs a float grid")
+        raise VolumeError(
+            f"grid {name!r} in {path} holds {g.valueTypeName} values; density needs a float grid"
+        )
     if g.activeVoxelCount() == 0:
         raise VolumeError(f"grid {name!r} in {path} is empty (no active voxels)")
     if not g.transform.isLinear:
-        raise VolumeError(f"grid {name!r} in {path} has a non-linear (frustum) transform, which is not supported")
+        raise VolumeError(
+            f"grid {name!r} in {path} has a non-linear (frustum) transform, which is not supported"
+        )
     lo, hi = g.evalActiveVoxelBoundingBox()
     dims = tuple(int(b - a + 1) for a, b in zip(lo, hi, strict=True))
     _check_size(path, dims)
@@ -258,9 +265,13 @@ def _load_vol(path: Path) -> Volume:
     raw = path.read_bytes()
     if len(raw) < 48:
         raise VolumeError(f"cannot read {path}: the .vol header is truncated")
-    version, encoding, nx, ny, nz, channels = struct.unpack_from("<Bi4i", raw, 3)[0:1] + struct.unpack_from("<5i", raw, 4)
+    version = raw[3]
+    encoding, nx, ny, nz, channels = struct.unpack_from("<5i", raw, 4)
     if version != 3 or encoding != 1:
-        raise VolumeError(f"{path}: only .vol version 3 with float32 data is supported (got version {version}, encoding {encoding})")
+        raise VolumeError(
+            f"{path}: only .vol version 3 with float32 data is supported "
+            f"(got version {version}, encoding {encoding})"
+        )
     if channels != 1:
         raise VolumeError(f"{path}: a density .vol has 1 channel, this one has {channels}")
     if min(nx, ny, nz) < 1:
@@ -297,7 +308,11 @@ def write_vdb(volume: Volume, path: str | Path, half: bool = False) -> None:
 
     g = vdb.FloatGrid()
     g.name = volume.grid
-    g.copyFromArray(np.ascontiguousarray(volume.density, np.float32), ijk=volume.index_min, tolerance=0.0)
+    g.copyFromArray(
+        np.ascontiguousarray(volume.density, np.float32),
+        ijk=tuple(int(i) for i in volume.index_min),
+        tolerance=0.0,
+    )
     g.transform = vdb.createLinearTransform(volume.index_to_world.T.tolist())  # OpenVDB: row vectors
     g.gridClass = vdb.GridClass.FOG_VOLUME
     g.saveFloatAsHalf = half
@@ -305,6 +320,7 @@ def write_vdb(volume: Volume, path: str | Path, half: bool = False) -> None:
 
 
 # --------------------------------------------------------------- procedural volumes
+
 
 def sphere_volume(n: int = 32, density: float = 1.0, voxel_size: float = 1.0, soft: float = 0.0) -> Volume:
     """A fog sphere filling an n^3 grid centred on the origin, radius n/2 - 1 voxels.
@@ -324,11 +340,15 @@ def sphere_volume(n: int = 32, density: float = 1.0, voxel_size: float = 1.0, so
     return Volume((density * d).astype(np.float32), (0, 0, 0), m, "density")
 
 
-def box_volume(dims: tuple[int, int, int], density: float = 1.0, index_min=(0, 0, 0),
-               index_to_world: np.ndarray | None = None) -> Volume:
+def box_volume(
+    dims: tuple[int, int, int],
+    density: float = 1.0,
+    index_min=(0, 0, 0),
+    index_to_world: np.ndarray | None = None,
+) -> Volume:
     """A homogeneous block of voxels (a slab or a cube) with any affine placement."""
     m = np.eye(4) if index_to_world is None else np.asarray(index_to_world, float)
-    return Volume(np.full(dims, density, np.float32), tuple(index_min), m, "density")
+    return Volume(np.full(dims, density, np.float32), tuple(int(i) for i in index_min), m, "density")
 
 
 def noise_volume(n: int = 64, seed: int = 7, density: float = 1.0, voxel_size: float = 1.0) -> Volume:
@@ -363,8 +383,11 @@ def _trilinear_upsample(lattice: np.ndarray, t: np.ndarray) -> np.ndarray:
     for dx in (0, 1):
         for dy in (0, 1):
             for dz in (0, 1):
-                w = ((f if dx else 1 - f)[:, None, None] * (f if dy else 1 - f)[None, :, None]
-                     * (f if dz else 1 - f)[None, None, :])
+                w = (
+                    (f if dx else 1 - f)[:, None, None]
+                    * (f if dy else 1 - f)[None, :, None]
+                    * (f if dz else 1 - f)[None, None, :]
+                )
                 out = out + w * lattice[np.ix_(i0 + dx, i0 + dy, i0 + dz)]
     return out.astype(np.float32)
 

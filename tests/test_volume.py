@@ -32,6 +32,7 @@ def rotated_affine() -> np.ndarray:
 
 # ------------------------------------------------------------------ real files
 
+
 def test_smoke1_reads_as_documented(data_dir):
     v = load_volume(data_dir / "smoke1.vdb")
     assert v.grid == "density"
@@ -71,6 +72,7 @@ def test_info_reports_grids_bbox_and_range(data_dir):
 
 # ------------------------------------------------------- round trips and placement
 
+
 @pytest.mark.parametrize("half", [False, True])
 def test_written_vdb_reads_back_with_its_affine_transform(tmp_path, half):
     m = rotated_affine()
@@ -93,8 +95,10 @@ def test_tiles_read_as_density_like_voxels(tmp_path):
     assert tiled.leafCount() == 0
     dense = tiled.deepCopy()
     acc = dense.getAccessor()
-    for leaf_origin in np.ndindex(2, 2, 2):  # writing one voxel of each 8^3 tile makes it a leaf
-        acc.setValueOn(tuple(8 * int(c) for c in leaf_origin), 1.5)
+    for leaf_origin in np.ndindex(2, 2, 2):  # a changed voxel turns its 8^3 tile into a leaf,
+        ijk = tuple(8 * int(c) for c in leaf_origin)  # which keeps its voxels when changed back
+        acc.setValueOn(ijk, 0.0)
+        acc.setValueOn(ijk, 1.5)
     assert dense.leafCount() == 8 and dense.activeVoxelCount() == tiled.activeVoxelCount()
     vdb.write(str(tmp_path / "tiled.vdb"), grids=[tiled])
     vdb.write(str(tmp_path / "dense.vdb"), grids=[dense])
@@ -133,6 +137,7 @@ def test_named_grid_else_density_else_only_float_grid(tmp_path):
 
 
 # -------------------------------------------------------------------- bad input
+
 
 def _single_grid_file(tmp_path) -> bytes:
     g = vdb.FloatGrid()

@@ -1,0 +1,94 @@
+"""The command line, run as users run it: a subprocess, one line per error, no traceback."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from cloudgraph.volume import write_vdb
+
+from .test_volpath import cube_volume
+
+
+def cli(*args, cwd=None):
+    return subprocess.run(
+        [sys.executable, "-m", "cloudgraph.cli", *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=300,
+    )
+
+
+@pytest.fixture
+def scene_file(tmp_path):
+    write_vdb(cube_volume(1.0), tmp_path / "cube.vdb")
+    doc = {
+        "volume": {"path": "cube.vdb"},
+        "light": {"direction": [0, -1, 0]},
+        "camera": {"eye": [0, 0, 6], "target": [0, 0, 0], "fov": 30, "width": 24, "height": 16},
+        "render": {"spp": 8, "max_depth": 2},
+    }
+    (tmp_path / "scene.json").write_text(json.dumps(doc))
+    return tmp_path / "scene.json"
+
+
+def test_render_writes_exr_and_png_and_compare_reads_them(scene_file, tmp_path):
+    r = cli(
+        "render",
+        scene_file,
+        "--integrator",
+        "volpath",
+        "--out",
+        tmp_path / "a.exr",
+        "--png",
+        tmp_path / "a.png",
+        "--exposure",
+        "1",
+        "--spp",
+        "4",
+    )
+    assert r.returncode == 0, r.stderr
+    assert "24x16 at 4 spp" in r.stdout
+    assert (tmp_path / "a.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    r = cli("compare", tmp_path / "a.exr", tmp_path / "a.exr", "--json")
+    assert r.returncode == 0, r.stderr
+    m = json.loads(r.stdout)
+    assert m["MAE"] == 0.0 and m["ref_mean"] > 0
+
+
+def test_info_prints_the_real_smoke_grid(data_dir):
+    r = cli("info", data_dir / "smoke1.vdb", "--json")
+    assert r.returncode == 0, r.stderr
+    info = json.loads(r.stdout)
+    assert info["index_bbox"] == [[1, 2, 1], [111, 223, 112]]
+    np.testing.assert_allclose(info["voxel_size"], [1 / 2.1] * 3, rtol=1e-5)
+
+
+def test_schema_is_json():
+    r = cli("schema")
+    assert r.returncode == 0 and json.loads(r.stdout)["title"] == "cloudgraph scene spec v1"
+
+
+@pytest.mark.parametrize(
+    "args, words",
+    [
+        (["info", "nowhere.vdb"], "volume file not found"),
+        (["render", "nowhere.json", "--out", "x.exr"], "scene file not found"),
+        (["compare", "a.exr", "b.exr"], "image not found"),
+        (["render", "{scene}", "--out", "x.exr", "--spp", "0"], "--spp must be in 1..65536"),
+        (["render", "{bad_scene}", "--out", "x.exr"], "camera.fov"),
+        (["render", "{scene}", "--out", "{tmp}/no/such/dir/x.exr"], "error"),
+    ],
+)
+def test_bad_input_exits_non_zero_with_one_line(scene_file, tmp_path, args, words):
+    bad = json.loads(scene_file.read_text())
+    bad["camera"]["fov"] = 200
+    (tmp_path / "bad.json").write_text(json.dumps(bad))
+    args = [a.format(scene=scene_file, bad_scene=tmp_path / "bad.json", tmp=tmp_path) for a in args]
+    r = cli(*args, cwd=tmp_path)
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and words in lines[0] and "Traceback" not in r.stderr
