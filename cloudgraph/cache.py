@@ -1,0 +1,151 @@
+"""Content keys and the on-disk cache store (DESIGN.md, "Cache levels and keys").
+
+Keys are sha256 of canonical JSON with the engine format version included:
+- volume id: the density values and the transform;
+- graph key: volume id + density_scale + build parameters;
+- radiance key: graph key + albedo + light + max_depth (+ lighting parameters).
+
+Files are ``.npz`` archives carrying their format version, written to a temporary name in the
+same folder and renamed into place, so a reader never sees a half-written cache.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+
+from . import ENGINE_FORMAT_VERSION
+from .errors import CacheError
+from .graph import Graph
+from .volume import Volume
+
+
+def _digest(obj) -> str:
+    text = json.dumps(obj, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def volume_id(volume: Volume) -> str:
+    """Content hash of the density values, their index placement and the world transform."""
+    h = hashlib.sha256()
+    h.update(f"cloudgraph-volume-v{ENGINE_FORMAT_VERSION}".encode())
+    h.update(np.asarray(volume.shape, np.int64).tobytes())
+    h.update(np.asarray(volume.index_min, np.int64).tobytes())
+    h.update(np.round(volume.index_to_world, 9).astype(np.float64).tobytes())
+    h.update(np.ascontiguousarray(volume.density, np.float32).tobytes())
+    return h.hexdigest()
+
+
+def graph_key(vol_id: str, density_scale: float, build_params: dict) -> str:
+    return _digest(
+        {
+            "v": ENGINE_FORMAT_VERSION,
+            "volume": vol_id,
+            "density_scale": float(density_scale),
+            "build": build_params,
+        }
+    )
+
+
+def radiance_key(g_key: str, albedo, light_dir, irradiance, max_depth: int, lighting: dict) -> str:
+    unit = np.asarray(light_dir, float) / np.linalg.norm(light_dir)
+    return _digest(
+        {
+            "v": ENGINE_FORMAT_VERSION,
+            "graph": g_key,
+            "albedo": np.broadcast_to(np.asarray(albedo, float), (3,)).round(9).tolist(),
+            "light_dir": unit.round(9).tolist(),
+            "irradiance": np.broadcast_to(np.asarray(irradiance, float), (3,)).round(9).tolist(),
+            "max_depth": int(max_depth),
+            "lighting": lighting,
+        }
+    )
+
+
+def default_cache_dir() -> Path:
+    return Path(os.environ.get("CLOUDGRAPH_CACHE_DIR", Path.home() / ".cache" / "cloudgraph"))
+
+
+class CacheStore:
+    """Graph and radiance files under one folder, keyed by content."""
+
+    def __init__(self, root: str | Path | None = None):
+        self.root = Path(root) if root is not None else default_cache_dir()
+
+    def graph_path(self, key: str) -> Path:
+        return self.root / "graphs" / f"{key}.npz"
+
+    def radiance_path(self, key: str) -> Path:
+        return self.root / "radiance" / f"{key}.npz"
+
+    # ------------------------------------------------------------------ graphs
+    def save_graph(self, key: str, graph: Graph) -> Path:
+        c = graph.counts.tocsr()
+        return _atomic_save(
+            self.graph_path(key),
+            kind="graph",
+            positions=graph.positions,
+            search_radius=graph.search_radius,
+            out_samples=graph.out_samples,
+            indptr=c.indptr,
+            indices=c.indices,
+            data=c.data,
+            stats=json.dumps(graph.stats),
+        )
+
+    def load_graph(self, key: str) -> Graph | None:
+        z = _load(self.graph_path(key), "graph")
+        if z is None:
+            return None
+        n = len(z["positions"])
+        counts = sp.csr_matrix((z["data"], z["indices"], z["indptr"]), shape=(n, n))
+        return Graph(
+            z["positions"], z["search_radius"], z["out_samples"], counts, json.loads(str(z["stats"]))
+        )
+
+    # ---------------------------------------------------------------- radiance
+    def save_radiance(self, key: str, radiance: np.ndarray, stats: dict) -> Path:
+        return _atomic_save(
+            self.radiance_path(key),
+            kind="radiance",
+            radiance=radiance.astype(np.float32),
+            stats=json.dumps(stats),
+        )
+
+    def load_radiance(self, key: str) -> tuple[np.ndarray, dict] | None:
+        z = _load(self.radiance_path(key), "radiance")
+        return None if z is None else (z["radiance"], json.loads(str(z["stats"])))
+
+
+def _atomic_save(path: Path, kind: str, **arrays) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, format_version=ENGINE_FORMAT_VERSION, kind=kind, **arrays)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _load(path: Path, kind: str) -> dict | None:
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except (OSError, ValueError, EOFError) as err:
+        raise CacheError(f"cache file {path} is corrupt ({err}); delete it to rebuild") from None
+    if int(data.get("format_version", -1)) != ENGINE_FORMAT_VERSION or str(data.get("kind")) != kind:
+        raise CacheError(f"cache file {path} is of another format version or kind; delete it to rebuild")
+    return data

@@ -1,0 +1,108 @@
+"""Walking the medium in Dr.Jit: the density field, free-flight sampling and ratio tracking.
+
+Kept apart from what each stage does at the points it samples (pbrt's ``SampleT_maj`` split):
+the graph build (§4.3), the direct lighting (§4.4) and the graph integrator (§4.6) all walk the
+medium through this module, with the same density interpolation as Mitsuba's ``gridvolume``
+(trilinear between voxel centres, clamped at the box) and the same box as ``volpath``.
+
+A variant must be set before these functions are called.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .volume import Volume
+
+
+@dataclass
+class DensityField:
+    """sigma_t(x) = scale * density(x) over the medium box, in Dr.Jit.
+
+    Attributes:
+        texture: density in the unit cube, cell-centred, trilinear, clamped (as ``gridvolume``).
+        world_to_unit: affine map of world points to the unit cube; ray parameters are kept.
+        scale: ``density_scale``, per world unit.
+        majorant: max sigma_t over the medium, per world unit (for delta and ratio tracking).
+    """
+
+    texture: object
+    world_to_unit: object
+    scale: float
+    majorant: float
+
+    @classmethod
+    def from_volume(cls, volume: Volume, density_scale: float) -> DensityField:
+        grid = np.ascontiguousarray(volume.density.transpose(2, 1, 0)[..., None], np.float32)
+        texture = mi.Texture3f(
+            mi.TensorXf(grid), filter_mode=dr.FilterMode.Linear, wrap_mode=dr.WrapMode.Clamp
+        )
+        world_to_unit = mi.Transform4f(np.linalg.inv(volume.unit_to_world).tolist())
+        majorant = float(volume.density.max()) * float(density_scale)
+        return cls(texture, world_to_unit, float(density_scale), majorant)
+
+    def sigma_t(self, p: mi.Point3f) -> mi.Float:
+        """Extinction at world points p, per world unit."""
+        # mi.Point3f(...): o + t * d is typed as a vector, which a transform would not translate
+        return self.texture.eval(self.world_to_unit @ mi.Point3f(p))[0] * self.scale
+
+    def box_interval(self, o: mi.Point3f, d: mi.Vector3f) -> tuple[mi.Float, mi.Float]:
+        """Ray parameters [t0, t1] inside the medium box (t0 >= 0; t0 >= t1 where the ray misses)."""
+        ou = self.world_to_unit @ mi.Point3f(o)
+        du = self.world_to_unit @ mi.Vector3f(d)
+        inv = dr.rcp(du)
+        a = (0.0 - ou) * inv
+        b = (1.0 - ou) * inv
+        lo, hi = dr.minimum(a, b), dr.maximum(a, b)
+        t0 = dr.maximum(dr.maximum(dr.maximum(lo.x, lo.y), lo.z), 0.0)
+        t1 = dr.minimum(dr.minimum(hi.x, hi.y), hi.z)
+        return t0, t1
+
+
+@dr.syntax
+def sample_collision(
+    field: DensityField, o: mi.Point3f, d: mi.Vector3f, rng: mi.PCG32, active: mi.Bool
+) -> tuple[mi.Float, mi.Bool]:
+    """Free-flight sampling by delta tracking: the distance to the first real collision.
+
+    Distances are sampled with density sigma_t(x) T_r(o, x) along o + t d (d of unit length).
+
+    Returns:
+        (t, collided): collided is False where the ray leaves the medium first.
+    """
+    t, t_end = field.box_interval(o, d)
+    active = mi.Bool(active) & (t < t_end) & (field.majorant > 0)
+    collided = mi.Bool(False)
+    while dr.hint(active, label="delta_tracking"):
+        # Tentative collision with the majorant, accepted with probability sigma_t / majorant
+        t += -dr.log(1.0 - rng.next_float32()) / field.majorant
+        inside = t < t_end
+        real = inside & (rng.next_float32() * field.majorant < field.sigma_t(o + t * d))
+        collided |= active & real
+        active &= inside & ~real
+    return t, collided
+
+
+@dr.syntax
+def ratio_tracking(
+    field: DensityField, o: mi.Point3f, d: mi.Vector3f, rng: mi.PCG32, active: mi.Bool
+) -> mi.Float:
+    """Transmittance from o along d to the box boundary, by ratio tracking (unbiased, in [0, 1])."""
+    t, t_end = field.box_interval(o, d)
+    Tr = mi.Float(1.0)  # Transmittance estimate
+    active = mi.Bool(active) & (t < t_end) & (field.majorant > 0)
+    while dr.hint(active, label="ratio_tracking"):
+        t += -dr.log(1.0 - rng.next_float32()) / field.majorant
+        active &= t < t_end
+        Tr[active] *= 1.0 - field.sigma_t(o + t * d) / field.majorant
+        active &= Tr > 1e-6  # below this the light is gone
+    return Tr
+
+
+def uniform_sphere(rng: mi.PCG32) -> mi.Vector3f:
+    """Isotropic directions."""
+    return mi.warp.square_to_uniform_sphere(mi.Point2f(rng.next_float32(), rng.next_float32()))
