@@ -110,17 +110,19 @@ class CacheStore:
         )
 
     # ---------------------------------------------------------------- radiance
-    def save_radiance(self, key: str, radiance: np.ndarray, stats: dict) -> Path:
+    def save_radiance(self, key: str, radiance: np.ndarray, radiance_gather: np.ndarray, stats: dict) -> Path:
+        """Node radiance L' and L' with one scattering event fewer, (N, 3) each."""
         return _atomic_save(
             self.radiance_path(key),
             kind="radiance",
             radiance=radiance.astype(np.float32),
+            radiance_gather=radiance_gather.astype(np.float32),
             stats=json.dumps(stats),
         )
 
-    def load_radiance(self, key: str) -> tuple[np.ndarray, dict] | None:
+    def load_radiance(self, key: str) -> tuple[tuple[np.ndarray, np.ndarray], dict] | None:
         z = _load(self.radiance_path(key), "radiance")
-        return None if z is None else (z["radiance"], json.loads(str(z["stats"])))
+        return None if z is None else ((z["radiance"], z["radiance_gather"]), json.loads(str(z["stats"])))
 
 
 def _atomic_save(path: Path, kind: str, **arrays) -> Path:

@@ -34,7 +34,9 @@ def _cmd_render(args: argparse.Namespace) -> None:
     else:
         from .integrators.graph import render_graph
 
-        image = render_graph(scene, volume, quality=args.quality)
+        image = render_graph(
+            scene, volume, args.quality, _store(args), args.estimator, progress=_progress_bar()
+        )
     seconds = time.perf_counter() - t0
     write_exr(image, args.out)
     if args.png:
@@ -43,6 +45,62 @@ def _cmd_render(args: argparse.Namespace) -> None:
         f"{args.integrator}: {scene.camera.width}x{scene.camera.height} at {scene.render.spp} spp "
         f"in {seconds:.2f} s -> {args.out}"
     )
+
+
+def _store(args: argparse.Namespace):
+    from .cache import CacheStore
+
+    return CacheStore(args.cache_dir)
+
+
+def _progress_bar():
+    """A one-line progress bar on stderr: ``[#####.....] 50% lighting``."""
+
+    def show(stage: str, fraction: float) -> None:
+        n = int(round(30 * fraction))
+        end = "\n" if fraction >= 1.0 else ""
+        print(
+            f"\r[{'#' * n}{'.' * (30 - n)}] {100 * fraction:3.0f}% {stage:<10}",
+            end=end,
+            file=sys.stderr,
+            flush=True,
+        )
+
+    return show
+
+
+def _cmd_precompute(args: argparse.Namespace) -> None:
+    from .mitsuba_scene import set_variant
+    from .precompute import precompute
+    from .render import scene_volume
+    from .scene import load_scene
+
+    scene = load_scene(args.scene)
+    volume = scene_volume(scene)
+    set_variant()
+    cache = precompute(scene, volume, args.quality, _store(args), _progress_bar())
+    for k, v in cache.keys.items():
+        print(f"{k}: {v}")
+    s = cache.stats
+    print(f"nodes {s['nodes']}  edges {s['edges']}  collisions {s['collisions']}  radius {s['radius']:.4g}")
+    print(
+        f"build {s['build_s']:.2f} s (trace {s['trace_s']:.2f}, group {s['group_s']:.2f}, "
+        f"reinforce {s['reinforce_s']:.2f})  lighting {s['lighting_s']:.2f} s  "
+        f"transport {s['transport_s']:.2f} s ({s['transport_iterations']} products)"
+    )
+    print(
+        f"bytes: graph {s['graph_bytes']}  radiance {s['radiance_bytes']}  "
+        f"(graph {'reused' if s['graph_reused'] else 'built'}, "
+        f"radiance {'reused' if s['radiance_reused'] else 'computed'})"
+    )
+
+
+def _cmd_bench(args: argparse.Namespace) -> None:
+    from .bench import run_bench
+    from .mitsuba_scene import set_variant
+
+    set_variant()
+    run_bench(quick=args.quick, scenes=args.scene, out_dir=args.out_dir)
 
 
 def _cmd_info(args: argparse.Namespace) -> None:
@@ -102,8 +160,27 @@ def build_parser() -> argparse.ArgumentParser:
         default="default",
         help="graph cache preset (graph integrator)",
     )
+    r.add_argument(
+        "--estimator",
+        choices=("gather", "free_flight", "march"),
+        default="gather",
+        help="graph: camera-stage estimator (free_flight is the thesis's; see integrators/graph.py)",
+    )
+    r.add_argument("--cache-dir", help="cache folder (default $CLOUDGRAPH_CACHE_DIR or ~/.cache/cloudgraph)")
     r.add_argument("--rr", action="store_true", help="volpath: keep Mitsuba's Russian roulette on")
     r.set_defaults(func=_cmd_render)
+
+    pc = sub.add_parser("precompute", help="build (or find) the graph radiance cache of a scene")
+    pc.add_argument("scene")
+    pc.add_argument("--quality", choices=("draft", "default", "high"), default="default")
+    pc.add_argument("--cache-dir", help="cache folder (default $CLOUDGRAPH_CACHE_DIR or ~/.cache/cloudgraph)")
+    pc.set_defaults(func=_cmd_precompute)
+
+    b = sub.add_parser("bench", help="graph vs volpath: speed and accuracy (BENCHMARK.md)")
+    b.add_argument("--quick", action="store_true", help="a small subset, minutes on two cores")
+    b.add_argument("--scene", action="append", help="only these scenes (repeatable)")
+    b.add_argument("--out-dir", default="bench/results")
+    b.set_defaults(func=_cmd_bench)
 
     i = sub.add_parser("info", help="describe a .vdb or .vol volume")
     i.add_argument("volume")

@@ -32,12 +32,15 @@ class RadianceCache:
     Attributes:
         graph: the graph.
         radiance: (N, 3) float32 node radiance L' (Algorithm 1), phase function included.
+        radiance_gather: (N, 3) the same with one scattering event fewer (max_depth - 1), for
+            estimators that scatter once more before looking up (the same when unbounded).
         keys: volume_id, graph_key, radiance_key.
         stats: graph and radiance stats, stage times, bytes.
     """
 
     graph: Graph
     radiance: np.ndarray
+    radiance_gather: np.ndarray
     keys: dict
     stats: dict
 
@@ -79,7 +82,7 @@ def precompute(
         store.save_graph(gkey, graph)
     found = store.load_radiance(rkey)
     if found is not None:
-        radiance, rstats = found
+        (radiance, radiance_gather), rstats = found
     else:
         field = DensityField.from_volume(volume, scene.medium.density_scale)
         progress("lighting", 0.7)
@@ -96,17 +99,17 @@ def precompute(
         t_light = time.perf_counter() - t0
         progress("transport", 0.85)
         t0 = time.perf_counter()
-        L, iterations = transport(
-            graph.collision_matrix(), L_d, scene.medium.albedo_rgb(), scene.render.max_depth, LIGHTING["tol"]
-        )
+        C, albedo, depth = graph.collision_matrix(), scene.medium.albedo_rgb(), scene.render.max_depth
+        L, iterations = transport(C, L_d, albedo, depth, LIGHTING["tol"])
+        L_gather = L if depth < 0 else transport(C, L_d, albedo, depth - 1, LIGHTING["tol"])[0]
         t_transport = time.perf_counter() - t0
-        radiance = L.astype(np.float32)
+        radiance, radiance_gather = L.astype(np.float32), L_gather.astype(np.float32)
         rstats = {
             "lighting_s": round(t_light, 3),
             "transport_s": round(t_transport, 3),
             "transport_iterations": iterations,
         }
-        store.save_radiance(rkey, radiance, rstats)
+        store.save_radiance(rkey, radiance, radiance_gather, rstats)
     progress("done", 1.0)
     stats = {
         **graph.stats,
@@ -118,4 +121,4 @@ def precompute(
         "radius": params.radius,
         "quality": quality,
     }
-    return RadianceCache(graph, radiance, keys, stats)
+    return RadianceCache(graph, radiance, radiance_gather, keys, stats)

@@ -8,14 +8,22 @@ The camera-stage estimator of Eq. 4.24 is a replaceable part (``estimator``):
 
 | estimator     | what it does                                                              |
 |---------------|---------------------------------------------------------------------------|
+| ``gather``      | default: p' by delta tracking, single scattering at p' exact (ratio      |
+|                 | tracking to the light), then one free flight to p'' and L'_search(p'')   |
 | ``free_flight`` | the thesis's: sample p' by delta tracking, weight albedo(p') L'_search(p') |
 | ``march``       | jittered ray march: sum T_r sigma_s L'_search dt along the ray (less noise) |
+
+Looking L' up where the camera's collision falls biases thick media upwards: node centres sit
+deeper than the camera's first collision, and radiance grows with depth below a free surface
+(§4.7). ``gather`` moves the lookup one flight further and computes what escapes on the way
+exactly, as final gathering does for photon maps; its node radiance must then cover one
+scattering event fewer (``radiance_gather`` in the cache).
 
 Plugin parameters (set through :meth:`GraphIntegrator.set_cache`, not the scene dict):
 
 | name      | type   | default       | meaning                                  |
 |-----------|--------|---------------|------------------------------------------|
-| estimator | string | ``free_flight`` | the camera-stage estimator above         |
+| estimator | string | ``gather``      | the camera-stage estimator above         |
 | step      | float  | node radius / 2 | march step, world units                  |
 
 Node radiance is gathered through a uniform grid of node lists that lives in Dr.Jit, so the
@@ -31,9 +39,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..tracing import DensityField, sample_collision
+from ..tracing import DensityField, ratio_tracking, sample_collision, uniform_sphere
 
-ESTIMATORS = ("free_flight", "march")
+ESTIMATORS = ("gather", "free_flight", "march")
 
 
 # ------------------------------------------------------------------ spatial index
@@ -127,7 +135,7 @@ class GraphIntegrator(mi.SamplingIntegrator):
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
-        self.estimator = props.get("estimator", "free_flight")
+        self.estimator = props.get("estimator", "gather")
         self.field = None
         self.grid = None
 
@@ -137,13 +145,18 @@ class GraphIntegrator(mi.SamplingIntegrator):
         grid: NodeGrid,
         albedo,
         node_radius: float,
-        estimator: str = "free_flight",
+        light_dir,
+        irradiance,
+        estimator: str = "gather",
         step: float | None = None,
     ) -> None:
+        """Hands the integrator its medium, its node grid and the light (for ``gather``)."""
         if estimator not in ESTIMATORS:
             raise ValueError(f"unknown estimator {estimator!r}; choose one of {', '.join(ESTIMATORS)}")
         self.field, self.grid, self.estimator = field, grid, estimator
         self.albedo = tuple(float(a) for a in albedo)
+        self.to_light = tuple(-float(c) for c in np.asarray(light_dir) / np.linalg.norm(light_dir))
+        self.irradiance = tuple(float(e) for e in np.broadcast_to(np.asarray(irradiance, float), (3,)))
         self.eps2 = (0.05 * node_radius) ** 2  # keeps w_a finite at a node's centre
         self.step = float(step) if step else 0.5 * node_radius
 
@@ -152,11 +165,21 @@ class GraphIntegrator(mi.SamplingIntegrator):
         seed = mi.UInt64(mi.UInt32(sampler.next_1d() * 4294967295.0))
         rng = mi.PCG32(n, initstate=seed, initseq=dr.arange(mi.UInt64, n))
         o, d = mi.Point3f(ray.o), mi.Vector3f(ray.d)
-        if self.estimator == "march":
-            L = self._march(o, d, rng, mi.Bool(active))
-        else:
-            L = self._free_flight(o, d, rng, mi.Bool(active))
+        L = getattr(self, "_" + self.estimator)(o, d, rng, mi.Bool(active))
         return mi.Spectrum(L), mi.Bool(active), []
+
+    def _gather(self, o, d, rng, active):
+        # Final gather: sample p' by delta tracking; at p', single scattering exactly (next-event
+        # estimation by ratio tracking to the light, Eq. 4.22 at a point) plus one more free
+        # flight to p'', where the graph's L' stands in for everything after (Eq. 4.25).
+        t, collided = sample_collision(self.field, o, d, rng, active)
+        p = mi.Point3f(o + t * d)
+        Tr = ratio_tracking(self.field, p, mi.Vector3f(*self.to_light), rng, collided)
+        L_ss = Tr * mi.Color3f(*self.irradiance) / (4.0 * dr.pi)
+        w = uniform_sphere(rng)
+        t2, collided2 = sample_collision(self.field, p, w, rng, collided)
+        L_ms = mi.Color3f(*self.albedo) * self.grid.lookup(p + t2 * w, self.eps2, collided2)
+        return dr.select(collided, mi.Color3f(*self.albedo) * (L_ss + dr.select(collided2, L_ms, 0.0)), 0.0)
 
     def _free_flight(self, o, d, rng, active):
         # Sample p' with pdf sigma_t T_r; the estimate of Eq. 4.24 is albedo L'_search(p')
@@ -202,21 +225,23 @@ class GraphRenderer:
     updates the sensor's parameters, which Mitsuba passes to the kernels as opaque values.
     """
 
-    def __init__(
-        self,
-        cache,
-        volume,
-        density_scale: float,
-        albedo,
-        estimator: str = "free_flight",
-        step: float | None = None,
-    ):
+    def __init__(self, cache, volume, scene, estimator: str = "gather", step: float | None = None):
         self.volume = volume
-        field = DensityField.from_volume(volume, density_scale)
+        field = DensityField.from_volume(volume, scene.medium.density_scale)
         g = cache.graph
-        grid = NodeGrid.build(g.positions, g.search_radius, cache.radiance)
+        radiance = cache.radiance_gather if estimator == "gather" else cache.radiance
+        grid = NodeGrid.build(g.positions, g.search_radius, radiance)
         self.integrator = GraphIntegrator(mi.Properties())
-        self.integrator.set_cache(field, grid, albedo, cache.stats["radius"], estimator, step)
+        self.integrator.set_cache(
+            field,
+            grid,
+            scene.medium.albedo_rgb(),
+            cache.stats["radius"],
+            scene.light.unit_direction(),
+            scene.light.irradiance_rgb(),
+            estimator,
+            step,
+        )
         self._scenes: dict[tuple[int, int], tuple] = {}
 
     def render(self, camera, spp: int, seed: int = 0) -> np.ndarray:
@@ -238,13 +263,13 @@ class GraphRenderer:
 
 
 def render_graph(
-    scene, volume, quality: str = "default", store=None, estimator: str = "free_flight", progress=None
+    scene, volume, quality: str = "default", store=None, estimator: str = "gather", progress=None
 ) -> np.ndarray:
     """Renders a scene spec from its radiance cache, building the cache first if it is missing."""
     from ..precompute import precompute
 
     cache = precompute(scene, volume, quality, store, progress)
-    renderer = GraphRenderer(cache, volume, scene.medium.density_scale, scene.medium.albedo_rgb(), estimator)
+    renderer = GraphRenderer(cache, volume, scene, estimator)
     return renderer.render(scene.camera, scene.render.spp, scene.render.seed)
 
 

@@ -1,0 +1,310 @@
+"""``cloudgraph bench``: graph integrator against volpath, side by side (BENCHMARK.md).
+
+Per scene and camera: precompute stage times, sizes, one graph frame, its errors against a
+volpath reference (thesis Eq. 5.1), and the time volpath needs to reach the same MAE (spp
+doubled until it does, time interpolated in log-log), with Russian roulette on and off, the
+faster one counting. References are rendered once and kept under ``bench/reference-cache/``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+import platform
+import resource
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .cache import CacheStore
+from .metrics import compare
+from .render import render_volpath
+from .scene import Scene, parse_scene
+from .volume import Volume, load_volume, noise_volume, sphere_volume
+
+log = logging.getLogger(__name__)
+DATA = Path(os.environ.get("CLOUDGRAPH_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
+
+
+@dataclass
+class BenchScene:
+    name: str
+    volume: Volume
+    density_scale: float
+
+
+def bench_scenes(names: list[str] | None = None) -> list[BenchScene]:
+    """The four scenes; density_scale puts the densest voxel at optical depth 1 (BENCHMARK.md)."""
+    makers = {
+        "sphere": lambda: sphere_volume(48),  # homogeneous; optical radius 23 x OD/voxel
+        "noise": lambda: noise_volume(64, seed=7),
+        "smoke1": lambda: load_volume(DATA / "smoke1.vdb"),
+        "blender": lambda: load_volume(DATA / "blender_smoke_000002.vdb"),
+    }
+    out = []
+    for name in names or list(makers):
+        if name not in makers:
+            raise ValueError(f"unknown bench scene {name!r}; choose from {', '.join(makers)}")
+        v = makers[name]()
+        # sphere: optical radius about 10 (BENCHMARK.md); others: densest voxel at optical depth 1
+        od_voxel = 10.0 / 23.0 if name == "sphere" else 1.0
+        out.append(BenchScene(name, v, od_voxel / float(v.density.max() * v.voxel_size.max())))
+    return out
+
+
+def cameras(volume: Volume, light_dir: np.ndarray, size: int) -> dict[str, dict]:
+    """A side-lit camera (90 degrees from the light) and a back-lit one (looking towards it)."""
+    lo, hi = volume.world_bbox()
+    c = (lo + hi) / 2
+    dist = 1.6 * float(np.linalg.norm(hi - lo))
+    side = np.cross(light_dir, [0.0, 0.0, 1.0])
+    side /= np.linalg.norm(side)
+    fov = float(np.degrees(2 * np.arctan(0.5 * np.linalg.norm(hi - lo) / dist)) * 1.1)
+    base = {"target": c.tolist(), "up": [0.0, 0.0, 1.0], "fov": fov, "width": size, "height": size}
+    return {
+        "side": {**base, "eye": (c + dist * side).tolist()},
+        "back": {**base, "eye": (c + dist * light_dir).tolist()},
+    }
+
+
+def _scene(bs: BenchScene, camera: dict, albedo: float, spp: int, seed: int) -> Scene:
+    return parse_scene(
+        {
+            "volume": {"path": bs.name},
+            "medium": {"density_scale": bs.density_scale, "albedo": albedo},
+            "light": {"direction": LIGHT.tolist(), "irradiance": 1.0},
+            "camera": camera,
+            "render": {"spp": spp, "max_depth": -1, "seed": seed},
+        }
+    )
+
+
+LIGHT = np.array([0.55, -0.25, -0.8]) / np.linalg.norm([0.55, -0.25, -0.8])
+
+
+def reference(bs: BenchScene, scene: Scene, spp: int, cache_dir: Path) -> np.ndarray:
+    """volpath (RR off) at ``spp``, kept on disk by the scene's hash."""
+    from .cache import volume_id
+
+    key = hashlib.sha256(
+        json.dumps(
+            [volume_id(bs.volume), scene.model_dump(exclude={"volume"}), spp], sort_keys=True, default=str
+        ).encode()
+    ).hexdigest()[:24]
+    path = cache_dir / f"{bs.name}-{key}.npy"
+    if path.is_file():
+        return np.load(path)
+    ref_scene = scene.model_copy(
+        update={"render": scene.render.model_copy(update={"spp": spp, "seed": 1234})}
+    )
+    t0 = time.perf_counter()
+    image = render_volpath(ref_scene, bs.volume)
+    log.info("reference %s: %d spp in %.1f s", bs.name, spp, time.perf_counter() - t0)
+    cache_dir.mkdir(parents=True, exist_ok=True)
+    np.save(path, image)
+    return image
+
+
+def volpath_equal_error(
+    bs: BenchScene, scene: Scene, ref: np.ndarray, target_mae: float, rr: bool, max_spp: int
+) -> dict:
+    """Seconds volpath needs for MAE <= target: spp doubled until reached, log-log interpolated;
+    past max_spp extrapolated with MAE ~ spp^-1/2 (marked ``extrapolated``)."""
+    points = []
+    spp = 1
+    while spp <= max_spp:
+        s = scene.model_copy(update={"render": scene.render.model_copy(update={"spp": spp, "seed": 99})})
+        t0 = time.perf_counter()
+        image = render_volpath(s, bs.volume, rr=rr)
+        seconds = time.perf_counter() - t0
+        mae = compare(image, ref)["MAE"]
+        points.append((spp, seconds, mae))
+        if mae <= target_mae:
+            break
+        spp *= 2
+    (s0, t0_, e0), (s1, t1_, e1) = (points[-2], points[-1]) if len(points) > 1 else (points[0], points[0])
+    if e1 <= target_mae and e0 > target_mae and e0 != e1:
+        f = np.log(e0 / target_mae) / np.log(e0 / e1)  # log-log interpolation in spp
+        seconds = float(t0_ * (t1_ / t0_) ** f)
+        extrapolated = False
+    elif e1 <= target_mae:
+        seconds, extrapolated = float(t1_), False
+    else:
+        seconds = float(t1_ * (e1 / target_mae) ** 2)  # MAE ~ spp^-1/2 and time ~ spp
+        extrapolated = True
+    return {
+        "seconds": seconds,
+        "extrapolated": extrapolated,
+        "rr": rr,
+        "trace": [{"spp": a, "s": round(b, 4), "MAE": c} for a, b, c in points],
+    }
+
+
+def run_bench(
+    quick: bool = False,
+    scenes: list[str] | None = None,
+    out_dir: str | Path = "bench/results",
+    quality: str = "default",
+    estimator: str = "march",
+    graph_spp: int = 4,
+) -> dict:
+    """Runs the benchmark, writes JSON and markdown under ``out_dir`` and prints the table."""
+    from .integrators.graph import GraphRenderer
+    from .precompute import precompute
+
+    out_dir = Path(out_dir)
+    names = scenes or (["sphere", "noise"] if quick else ["sphere", "noise", "smoke1", "blender"])
+    size = 64 if quick else 128
+    ref_spp = 1024 if quick else 4096
+    albedos = [1.0] if quick else [1.0, 0.8]
+    store = CacheStore(out_dir.parent / "cache")
+    rows = []
+    for bs in bench_scenes(names):
+        for albedo in albedos:
+            for cam_name, camera in cameras(bs.volume, LIGHT, size).items():
+                scene = _scene(bs, camera, albedo, graph_spp, seed=0)
+                t0 = time.perf_counter()
+                cache = precompute(scene, bs.volume, quality, store)
+                pre_s = time.perf_counter() - t0
+                rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+                renderer = GraphRenderer(cache, bs.volume, scene, estimator)
+                renderer.render(scene.camera, graph_spp, seed=0)  # compile, then time warm frames
+                times = []
+                for seed in (1, 2, 3):
+                    t1 = time.perf_counter()
+                    image = renderer.render(scene.camera, graph_spp, seed=seed)
+                    times.append(time.perf_counter() - t1)
+                frame_s = float(np.median(times))
+                ref = reference(bs, scene, ref_spp, out_dir.parent / "reference-cache")
+                err = compare(image, ref)
+                vp = [
+                    volpath_equal_error(bs, scene, ref, err["MAE"], rr, ref_spp // 4) for rr in (False, True)
+                ]
+                best = min(vp, key=lambda r: r["seconds"])
+                s = cache.stats
+                build_total = s["build_s"] + s["lighting_s"] + s["transport_s"]
+                gain = best["seconds"] - frame_s
+                rows.append(
+                    {
+                        "scene": bs.name,
+                        "camera": cam_name,
+                        "albedo": albedo,
+                        "size": size,
+                        "density_scale": bs.density_scale,
+                        "radius": s["radius"],
+                        "build_s": s["build_s"],
+                        "lighting_s": s["lighting_s"],
+                        "transport_s": s["transport_s"],
+                        "precompute_wall_s": round(pre_s, 3),
+                        "nodes": s["nodes"],
+                        "edges": s["edges"],
+                        "cache_MB": round((s["graph_bytes"] + s["radiance_bytes"]) / 2**20, 2),
+                        "peak_rss_MB": round(rss_mb, 1),
+                        "graph_spp": graph_spp,
+                        "estimator": estimator,
+                        "graph_frame_s": round(frame_s, 4),
+                        **{k: err[k] for k in ("MAE", "MPE", "MNE", "relMSE")},
+                        "ref_mean": err["ref_mean"],
+                        "MAE_pct_of_mean": 100 * err["MAE"] / max(err["ref_mean"], 1e-12),
+                        "volpath_equal_error_s": round(best["seconds"], 4),
+                        "volpath_rr": best["rr"],
+                        "volpath_extrapolated": best["extrapolated"],
+                        "speedup": round(best["seconds"] / frame_s, 2),
+                        "break_even_frames": round(build_total / gain, 2) if gain > 0 else None,
+                        "volpath_trace": vp,
+                    }
+                )
+                log.info("%s", {k: v for k, v in rows[-1].items() if k != "volpath_trace"})
+                print(_row_md(rows[-1]), flush=True)
+    result = {
+        "machine": machine(),
+        "quick": quick,
+        "quality": quality,
+        "reference_spp": ref_spp,
+        "rows": rows,
+    }
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stem = f"bench-{'quick' if quick else 'full'}-{time.strftime('%Y%m%d-%H%M%S')}"
+    (out_dir / f"{stem}.json").write_text(json.dumps(result, indent=2))
+    table = markdown(result)
+    (out_dir / f"{stem}.md").write_text(table)
+    print(table)
+    return result
+
+
+COLUMNS = [
+    "scene",
+    "camera",
+    "albedo",
+    "nodes",
+    "edges",
+    "cache_MB",
+    "build_s",
+    "lighting_s",
+    "transport_s",
+    "peak_rss_MB",
+    "graph_frame_s",
+    "MAE",
+    "MAE_pct_of_mean",
+    "MPE",
+    "MNE",
+    "relMSE",
+    "volpath_equal_error_s",
+    "speedup",
+    "break_even_frames",
+]
+
+
+def _fmt(v) -> str:
+    return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+
+def _row_md(row: dict) -> str:
+    return "| " + " | ".join(_fmt(row[c]) for c in COLUMNS) + " |"
+
+
+def markdown(result: dict) -> str:
+    m = result["machine"]
+    head = (
+        f"# cloudgraph bench ({'quick' if result['quick'] else 'full'})\n\n"
+        f"Machine: {m['cpu']}, {m['cores']} cores, {m['memory_GB']} GB, {m['system']}; "
+        f"variant {m['variant']}; quality {result['quality']}; reference volpath "
+        f"{result['reference_spp']} spp, RR off.\n\n"
+    )
+    return (
+        head
+        + "| "
+        + " | ".join(COLUMNS)
+        + " |\n|"
+        + "---|" * len(COLUMNS)
+        + "\n"
+        + "\n".join(_row_md(r) for r in result["rows"])
+        + "\n"
+    )
+
+
+def machine() -> dict:
+    import mitsuba as mi
+
+    cpu = platform.processor() or "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    mem = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "memory_GB": round(mem, 1),
+        "system": f"{platform.system()} {platform.release()}",
+        "python": platform.python_version(),
+        "variant": mi.variant(),
+        "mitsuba": mi.__version__,
+    }
