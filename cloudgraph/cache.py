@@ -144,6 +144,10 @@ def _load(path: Path, kind: str) -> dict | None:
     if not path.is_file():
         return None
     try:
+        os.utime(path)  # last use, for least-recently-used eviction (store.evict_lru)
+    except OSError:
+        return None  # evicted between the check and now: treat as missing
+    try:
         with np.load(path, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
     except (OSError, ValueError, EOFError) as err:

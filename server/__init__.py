@@ -1,0 +1,1 @@
+"""cloudgraph's HTTP API (FastAPI). Routes validate and enqueue; workers call the engine."""

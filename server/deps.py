@@ -1,0 +1,51 @@
+"""Dependencies as Annotated aliases: settings, Redis, the queue, stores, auth."""
+
+from __future__ import annotations
+
+import hmac
+from typing import Annotated
+
+from fastapi import Depends, HTTPException, Request
+from redis import Redis
+from rq import Queue
+
+from cloudgraph.store import VolumeStore
+
+from .settings import Settings
+
+
+def get_settings(request: Request) -> Settings:
+    return request.app.state.settings
+
+
+def get_redis(request: Request) -> Redis:
+    return request.app.state.redis
+
+
+def get_queue(request: Request) -> Queue:
+    return request.app.state.queue
+
+
+def get_volumes(request: Request) -> VolumeStore:
+    return request.app.state.volumes
+
+
+def require_key(request: Request) -> None:
+    """With CLOUDGRAPH_API_KEYS set, every /v1 route needs ``Authorization: Bearer <key>``."""
+    keys = request.app.state.settings.API_KEYS
+    if not keys:
+        return
+    auth = request.headers.get("authorization", "")
+    scheme, _, token = auth.partition(" ")
+    if scheme.lower() != "bearer" or not any(hmac.compare_digest(token.strip(), k) for k in keys):
+        raise HTTPException(
+            401,
+            "missing or wrong API key: send 'Authorization: Bearer <key>'",
+            headers={"WWW-Authenticate": "Bearer"},
+        )
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+RedisDep = Annotated[Redis, Depends(get_redis)]
+QueueDep = Annotated[Queue, Depends(get_queue)]
+VolumesDep = Annotated[VolumeStore, Depends(get_volumes)]

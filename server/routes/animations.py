@@ -1,0 +1,174 @@
+"""/v1/animations: camera keyframes or an orbit -> frames rendered across workers -> MP4."""
+
+from __future__ import annotations
+
+import uuid
+from pathlib import Path
+
+import numpy as np
+from fastapi import APIRouter, HTTPException
+from fastapi.responses import FileResponse, JSONResponse
+
+from cloudgraph.scene import CameraSpec
+
+from ..deps import QueueDep, RedisDep, SettingsDep, VolumesDep
+from ..jobs import check_capacity, describe, enqueue, fetch, status_of
+from ..schemas import AnimationCreate, JobStatus
+from .renders import check_limits, precompute_for
+
+router = APIRouter(prefix="/animations", tags=["animations"])
+FRAMES_PER_JOB = 4
+
+
+def camera_path(body: AnimationCreate) -> list[CameraSpec]:
+    """One camera per frame: keyframes interpolated linearly and evenly, or an orbit."""
+    base = body.scene.camera
+    n = body.frames
+    s = np.linspace(0.0, 1.0, n) if n > 1 else np.zeros(1)
+    if body.keyframes is not None:
+        keys = body.keyframes
+        seg = s * (len(keys) - 1)
+        i = np.minimum(np.floor(seg).astype(int), len(keys) - 2)
+        f = seg - i
+        out = []
+        for k, t in zip(i, f, strict=True):  # a loop over frames, not pixels
+            a, b = keys[k], keys[k + 1]
+
+            def lerp(x, y, t=t):
+                return tuple(float(v) for v in (1 - t) * np.asarray(x) + t * np.asarray(y))
+
+            out.append(
+                a.model_copy(
+                    update={
+                        "eye": lerp(a.eye, b.eye),
+                        "target": lerp(a.target, b.target),
+                        "up": lerp(a.up, b.up),
+                        "fov": (1 - t) * a.fov + t * b.fov,
+                    }
+                )
+            )
+        return out
+    target, up = np.asarray(base.target), np.asarray(base.up) / np.linalg.norm(base.up)
+    offset = np.asarray(base.eye) - target
+    radius = body.orbit.radius or float(np.linalg.norm(offset))
+    u = offset - up * offset.dot(up)
+    u = u / np.linalg.norm(u) if np.linalg.norm(u) > 1e-9 else np.cross(up, [1.0, 0, 0])
+    v = np.cross(up, u)
+    el = np.radians(body.orbit.elevation)
+    steps = np.arange(n) / n * 2 * np.pi * body.orbit.turns
+    return [
+        base.model_copy(
+            update={
+                "eye": tuple(
+                    float(c)
+                    for c in target
+                    + radius * (np.cos(el) * (np.cos(a) * u + np.sin(a) * v) + np.sin(el) * up)
+                )
+            }
+        )
+        for a in steps
+    ]
+
+
+@router.post("", status_code=202)
+def create_animation(
+    body: AnimationCreate, redis: RedisDep, queue: QueueDep, settings: SettingsDep, volumes: VolumesDep
+):
+    """Renders the frames as batch jobs across the workers, then encodes an MP4."""
+    scene = body.scene
+    check_limits(scene, settings)
+    if body.frames > settings.MAX_FRAMES:
+        raise HTTPException(422, f"frames {body.frames} is over the limit of {settings.MAX_FRAMES}")
+    if scene.volume.id is None or volumes.info(scene.volume.id) is None:
+        raise HTTPException(404, f"no volume with id {scene.volume.id!r}; upload it with POST /v1/volumes")
+    n_jobs = -(-body.frames // FRAMES_PER_JOB)
+    check_capacity(queue, settings, extra=n_jobs + 1)
+    pre = (
+        precompute_for(scene, body.quality, redis, queue, settings, volumes)
+        if body.integrator == "graph"
+        else None
+    )
+    depends = pre if pre is not None and status_of(pre) != JobStatus.finished else None
+    anim_id = f"anim-{uuid.uuid4().hex}"
+    out_dir = settings.outputs_dir / "animations" / anim_id
+    scenes = [scene.model_copy(update={"camera": c}).model_dump() for c in camera_path(body)]
+    children = []
+    for first in range(0, body.frames, FRAMES_PER_JOB):
+        j = enqueue(
+            queue,
+            settings,
+            "worker.jobs.frames_job",
+            scenes[first : first + FRAMES_PER_JOB],
+            first,
+            body.integrator,
+            body.quality,
+            body.exposure,
+            str(out_dir),
+            kind="frames",
+            depends_on=depends,
+            meta={"animation": anim_id},
+        )
+        children.append(j)
+    job = enqueue(
+        queue,
+        settings,
+        "worker.jobs.encode_job",
+        str(out_dir),
+        body.fps,
+        body.frames,
+        job_id=anim_id,
+        kind="animation",
+        depends_on=children,
+        meta={
+            "result_url": f"/v1/animations/{anim_id}/video",
+            "frames": body.frames,
+            "out_dir": str(out_dir),
+            "children": [c.id for c in children],
+        },
+    )
+    return JSONResponse(
+        describe(job).model_dump(mode="json"), status_code=202, headers={"Location": f"/v1/jobs/{anim_id}"}
+    )
+
+
+def _anim(redis, anim_id: str):
+    job = fetch(redis, anim_id)
+    if job is None or job.meta.get("kind") != "animation":
+        raise HTTPException(404, f"no animation {anim_id!r}")
+    return job
+
+
+@router.get("/{anim_id}")
+def get_animation(anim_id: str, redis: RedisDep) -> dict:
+    job = _anim(redis, anim_id)
+    d = describe(job).model_dump(mode="json")
+
+    out = Path(job.meta["out_dir"])
+    d["frames_done"] = (
+        sorted(int(p.stem.split("_")[1]) for p in out.glob("frame_*.png")) if out.is_dir() else []
+    )
+    d["frames"] = job.meta["frames"]
+    return d
+
+
+@router.get("/{anim_id}/video")
+def get_video(anim_id: str, redis: RedisDep):
+    job = _anim(redis, anim_id)
+    if status_of(job) != JobStatus.finished:
+        raise HTTPException(409, f"animation {anim_id} is {status_of(job).value}, not finished")
+
+    return FileResponse(
+        Path(job.meta["out_dir"]) / "video.mp4", media_type="video/mp4", filename=f"{anim_id}.mp4"
+    )
+
+
+@router.get("/{anim_id}/frames/{index}")
+def get_frame(anim_id: str, index: int, redis: RedisDep):
+    job = _anim(redis, anim_id)
+
+    p = Path(job.meta["out_dir"]) / f"frame_{index:05d}.png"
+    if not 0 <= index < job.meta["frames"]:
+        raise HTTPException(404, f"frame {index} is outside 0..{job.meta['frames'] - 1}")
+    if not p.is_file():
+        raise HTTPException(409, f"frame {index} is not rendered yet")
+    return FileResponse(p, media_type="image/png")

@@ -1,0 +1,65 @@
+"""/v1/jobs: status, progress as server-sent events, cancel."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+
+from fastapi import APIRouter, HTTPException
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import StreamingResponse
+
+from ..deps import RedisDep
+from ..jobs import cancel, describe, fetch
+from ..schemas import JobPublic, JobStatus
+
+router = APIRouter(prefix="/jobs", tags=["jobs"])
+TERMINAL = (JobStatus.finished, JobStatus.failed, JobStatus.canceled)
+
+
+def _job(redis, job_id: str):
+    job = fetch(redis, job_id)
+    if job is None:
+        raise HTTPException(404, f"no job {job_id!r}")
+    return job
+
+
+@router.get("/{job_id}", response_model=JobPublic)
+def get_job(job_id: str, redis: RedisDep) -> JobPublic:
+    return describe(_job(redis, job_id))
+
+
+@router.get("/{job_id}/events")
+async def job_events(job_id: str, redis: RedisDep):
+    """Server-sent events: ``progress`` on every change, then one ``end`` with the final state."""
+    job = _job(redis, job_id)
+
+    async def stream():
+        last = None
+        while True:
+            d = await run_in_threadpool(describe, job)
+            body = d.model_dump(mode="json")
+            state = (body["status"], body["stage"], body["fraction"])
+            if state != last:
+                last = state
+                yield f"event: progress\ndata: {json.dumps(body)}\n\n"
+            if d.status in TERMINAL:
+                yield f"event: end\ndata: {json.dumps(body)}\n\n"
+                return
+            await asyncio.sleep(0.25)
+
+    return StreamingResponse(
+        stream(),
+        media_type="text/event-stream",
+        headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
+    )
+
+
+@router.post("/{job_id}/cancel", response_model=JobPublic)
+def cancel_job(job_id: str, redis: RedisDep) -> JobPublic:
+    """Cancels a queued or running job (and an animation's frame jobs)."""
+    job = _job(redis, job_id)
+    if describe(job).status in TERMINAL:
+        raise HTTPException(409, f"job {job_id} has already ended ({describe(job).status.value})")
+    cancel(redis, job)
+    return describe(job)

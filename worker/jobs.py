@@ -1,0 +1,140 @@
+"""Job functions. Thin: resolve the scene, call the engine, report progress, write results."""
+
+from __future__ import annotations
+
+import logging
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+from rq import get_current_job
+
+from cloudgraph.image import png_bytes, write_exr
+from cloudgraph.scene import parse_scene
+
+from .state import state
+
+log = logging.getLogger(__name__)
+
+
+class JobCancelled(Exception):
+    """The job was cancelled by a client (checked at every progress report)."""
+
+
+def cancel_key(job_id: str) -> str:
+    return f"cloudgraph:cancel:{job_id}"
+
+
+def report(stage: str, fraction: float) -> None:
+    """Progress into the current job's meta; raises JobCancelled when a cancel was asked for."""
+    job = get_current_job()
+    if job is None:
+        return
+    job.meta.update(stage=stage, fraction=round(float(fraction), 4))
+    job.save_meta()
+    if job.connection.exists(cancel_key(job.id)):
+        raise JobCancelled(f"job {job.id} was cancelled")
+
+
+def _renderer(scene, volume, quality: str, progress):
+    from cloudgraph.integrators.graph import GraphRenderer
+    from cloudgraph.precompute import precompute
+
+    s = state()
+    cache = precompute(scene, volume, quality, s.caches, progress)
+    key = (cache.keys["radiance_key"], quality)
+    return cache, s.renderers.get_or_make(key, lambda: GraphRenderer(cache, volume, scene))
+
+
+def precompute_job(scene: dict, quality: str) -> dict:
+    """Builds (or finds) the radiance cache of a scene; returns its keys and stats."""
+    from cloudgraph.precompute import precompute
+
+    sc = parse_scene(scene)
+    volume = state().volume(sc)
+    cache = precompute(sc, volume, quality, state().caches, report)
+    return {"keys": cache.keys, "stats": cache.stats}
+
+
+def render_image(scene: dict, integrator: str, quality: str) -> tuple[np.ndarray, float]:
+    """(image, seconds) for a scene with the graph or volpath integrator."""
+    from cloudgraph.render import render_volpath
+
+    sc = parse_scene(scene)
+    volume = state().volume(sc)
+    if integrator == "graph":
+        _, renderer = _renderer(sc, volume, quality, lambda s, f: report(s, 0.9 * f))
+        report("render", 0.9)
+        t0 = time.perf_counter()
+        image = renderer.render(sc.camera, sc.render.spp, sc.render.seed)
+    else:
+        report("render", 0.0)
+        t0 = time.perf_counter()
+        image = render_volpath(sc, volume)
+    return image, time.perf_counter() - t0
+
+
+def render_job(scene: dict, integrator: str, fmt: str, quality: str, exposure: float, out: str) -> dict:
+    """Renders one image to ``out`` (png or exr)."""
+    image, seconds = render_image(scene, integrator, quality)
+    path = Path(out)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp" + path.suffix)
+    if fmt == "exr":
+        write_exr(image, tmp)
+    else:
+        tmp.write_bytes(png_bytes(image, exposure))
+    tmp.replace(path)
+    report("done", 1.0)
+    return {"path": str(path), "render_s": round(seconds, 4), "mean": float(image.mean())}
+
+
+def frames_job(
+    scenes: list[dict], first: int, integrator: str, quality: str, exposure: float, out_dir: str
+) -> dict:
+    """Renders a run of animation frames (frame_%05d.png), one Python call per frame."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    for i, scene in enumerate(scenes):  # a loop over frames, each a whole vectorised render
+        image, _ = render_image(scene, integrator, quality)
+        tmp = out / f".frame_{first + i:05d}.png.tmp"
+        tmp.write_bytes(png_bytes(image, exposure))
+        tmp.replace(out / f"frame_{first + i:05d}.png")
+        report("frames", (i + 1) / len(scenes))
+    return {"frames": len(scenes), "first": first}
+
+
+def encode_job(out_dir: str, fps: float, n_frames: int) -> dict:
+    """Encodes frame_%05d.png into an H.264 MP4 that browsers play."""
+    import imageio_ffmpeg
+
+    out = Path(out_dir)
+    missing = [i for i in range(n_frames) if not (out / f"frame_{i:05d}.png").is_file()]
+    if missing:
+        raise RuntimeError(f"{len(missing)} frames are missing, first {missing[0]}")
+    report("encode", 0.0)
+    tmp = out / ".video.tmp.mp4"
+    cmd = [
+        imageio_ffmpeg.get_ffmpeg_exe(),
+        "-y",
+        "-loglevel",
+        "error",
+        "-framerate",
+        str(fps),
+        "-i",
+        str(out / "frame_%05d.png"),
+        "-c:v",
+        "libx264",
+        "-pix_fmt",
+        "yuv420p",
+        "-vf",
+        "pad=ceil(iw/2)*2:ceil(ih/2)*2",
+        "-movflags",
+        "+faststart",
+        str(tmp),
+    ]
+    subprocess.run(cmd, check=True, capture_output=True, timeout=600)
+    tmp.replace(out / "video.mp4")
+    report("done", 1.0)
+    return {"video": str(out / "video.mp4"), "frames": n_frames, "fps": fps}
