@@ -1,6 +1,6 @@
 # cloudgraph: the README's two commands are `make run` and `make test`; both start with setup.
 SHELL := /bin/bash
-APT_PACKAGES := libllvm19 python3-openvdb python3-venv redis-server
+APT_PACKAGES := libllvm19 python3-openvdb python3-venv redis-server chromium
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
@@ -27,16 +27,17 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q "numpy<2" -e ".[test]"
 	touch $(STAMP)
 
+# Redis (append-only, data under ./data), one worker and the API + web page on :8000.
 run: setup
-	$(VENV)/bin/cloudgraph --help
+	./bin/run-service
 
 test: setup
-	$(VENV)/bin/ruff check cloudgraph tests
+	$(VENV)/bin/ruff check cloudgraph server worker tests
 	$(VENV)/bin/python -m pytest -q
 
 lint: setup
-	$(VENV)/bin/ruff check cloudgraph tests
-	$(VENV)/bin/ruff format --check cloudgraph tests
+	$(VENV)/bin/ruff check cloudgraph server worker tests
+	$(VENV)/bin/ruff format --check cloudgraph server worker tests
 
 bench: setup
 	$(VENV)/bin/cloudgraph bench
