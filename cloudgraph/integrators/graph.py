@@ -256,8 +256,8 @@ class GraphRenderer:
         mscene, params = self._scenes[size]
         params["sensor.to_world"] = sensor["to_world"]
         params["sensor.x_fov"] = sensor["fov"]
-        params["sensor.far_clip"] = sensor["far_clip"]
-        params["sensor.near_clip"] = sensor["near_clip"]
+        # near_clip and far_clip are plain floats that Mitsuba compiles into the kernel: they stay
+        # as the first camera set them (this integrator clips rays to the medium box itself).
         params.update()
         return np.array(mi.render(mscene, spp=spp, seed=seed), dtype=np.float32)
 
