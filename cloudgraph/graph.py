@@ -1,10 +1,12 @@
 """Building the graph (thesis §4.3): light tracing, node grouping, edge counts, reinforcement,
 search ranges.
 
-Light paths are traced from the directional light through the medium by free-flight sampling
-(delta tracking, in Dr.Jit). Every *collision* (DESIGN.md's generalisation: not only scattering
-events) joins a node; per node we count every outgoing free-flight sample, escapes included,
-and per edge a -> b the samples from a that collide in b. Then
+Light paths are traced from directional lights through the medium by free-flight sampling
+(delta tracking, in Dr.Jit): from six axis directions rather than the scene's light, so that
+the graph depends only on its key (see GRAPH_LIGHTS). Every *collision* (DESIGN.md's
+generalisation: not only scattering events) joins a node; per node we count every outgoing
+free-flight sample, escapes included, and per edge a -> b the samples from a that collide in
+b. Then
 
     C[a, b] = count(a -> b) / out_samples(a)        (collision probabilities)
     T       = C . diag(albedo)                       (formed in transport.py)
@@ -166,17 +168,17 @@ class Graph:
 
 def trace_light_paths(
     field: DensityField,
-    light_dir: np.ndarray,
+    directions: np.ndarray,
     bounds: tuple[np.ndarray, np.ndarray],
     n_paths: int,
     max_collisions: int,
     seed: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Paths from the directional light, free-flight sampled through the medium (Dr.Jit).
+    """Paths from directional lights, free-flight sampled through the medium (Dr.Jit).
 
     Args:
         field: the medium's density field.
-        light_dir: (3,) unit direction the light travels.
+        directions: (K, 3) unit directions the light travels; path i uses directions[i % K].
         bounds: world bounding box of the medium (lo, hi).
 
     Returns:
@@ -186,15 +188,16 @@ def trace_light_paths(
     """
     lo, hi = bounds
     centre, radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2 * 1.001
-    frame = mi.Frame3f(mi.Vector3f(*(float(c) for c in light_dir)))
+    dirs = mi.Vector3f(*(np.asarray(directions, np.float32)[:, i] for i in range(3)))
+    d = dr.gather(mi.Vector3f, dirs, dr.arange(mi.UInt32, n_paths) % len(directions))
+    frame = mi.Frame3f(d)
     rng = mi.PCG32(n_paths, initstate=seed, initseq=dr.arange(mi.UInt64, n_paths))
     # Origins uniform on a disk perpendicular to the light that covers the medium
     disk = mi.warp.square_to_uniform_disk_concentric(mi.Point2f(rng.next_float32(), rng.next_float32()))
     o = mi.Point3f(
         mi.Point3f(*(float(c) for c in centre))
-        + radius * (disk.x * mi.Vector3f(frame.s) + disk.y * mi.Vector3f(frame.t) - mi.Vector3f(frame.n))
+        + radius * (disk.x * mi.Vector3f(frame.s) + disk.y * mi.Vector3f(frame.t) - d)
     )
-    d = mi.Vector3f(frame.n)
     buf = dr.full(mi.Float, np.nan, n_paths * max_collisions * 3)
     n = _walk(field, o, d, rng, buf, max_collisions)
     positions = np.array(buf, dtype=np.float32).reshape(n_paths, max_collisions, 3)
@@ -258,21 +261,25 @@ def seed_nodes(points: np.ndarray, radius: float) -> np.ndarray:
     return (sums / n[:, None]).astype(np.float32)
 
 
-def build_graph(volume: Volume, density_scale: float, light_dir, params: BuildParams, progress=None) -> Graph:
-    """Builds the graph for a volume lit from ``light_dir`` (a variant must be set).
+#: Light paths enter from the six axis directions: the graph is then the same whatever light
+#: first asked for it, as its key says (DESIGN.md: a new light reuses the graph). Transitions do
+#: not depend on the light; only where nodes fall does, and coverage seeds fill the rest.
+GRAPH_LIGHTS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
 
-    The light only chooses where the first collisions fall; transitions do not depend on it.
+
+def build_graph(volume: Volume, density_scale: float, params: BuildParams, progress=None) -> Graph:
+    """Builds the graph of a volume and density scale (a variant must be set).
+
     ``progress(stage, fraction)`` is called as the build goes.
     """
     progress = progress or (lambda stage, fraction: None)
     t_start = time.perf_counter()
     field = DensityField.from_volume(volume, density_scale)
-    light_dir = np.asarray(light_dir, float) / np.linalg.norm(light_dir)
 
     # Light paths (§4.3)
     progress("trace", 0.0)
     pos, n_col = trace_light_paths(
-        field, light_dir, volume.world_bbox(), params.n_paths, params.max_collisions, params.seed
+        field, GRAPH_LIGHTS, volume.world_bbox(), params.n_paths, params.max_collisions, params.seed
     )
     k = np.arange(params.max_collisions)[None, :]
     valid = k < n_col[:, None]

@@ -77,7 +77,7 @@ def precompute(
     graph_reused = graph is not None
     if graph is None:
         graph = build_graph(
-            volume, scene.medium.density_scale, light_dir, params, progress=lambda s, f: progress(s, 0.7 * f)
+            volume, scene.medium.density_scale, params, progress=lambda s, f: progress(s, 0.7 * f)
         )
         store.save_graph(gkey, graph)
     found = store.load_radiance(rkey)

@@ -56,8 +56,15 @@ class VolumeStore:
                 head = f.read(8)
             ext = ".vdb" if len(head) == 8 and int.from_bytes(head, "little") == VDB_MAGIC else ".vol"
             info = volume_info(tmp)  # raises VolumeError for anything unreadable
-            info.update({"id": vid, "filename": Path(filename).name, "bytes": size, "format": ext[1:],
-                         "created": time.time()})
+            info.update(
+                {
+                    "id": vid,
+                    "filename": Path(filename).name,
+                    "bytes": size,
+                    "format": ext[1:],
+                    "created": time.time(),
+                }
+            )
             del info["path"]
             os.replace(tmp, self.root / f"{vid}{ext}")
             _atomic_write_text(self.root / f"{vid}.json", json.dumps(info))
