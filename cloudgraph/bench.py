@@ -144,6 +144,15 @@ def volpath_equal_error(
     }
 
 
+def reference_noise(volpath_run: dict, ref_spp: int) -> float:
+    """Estimated MAE of the reference itself against the truth, from volpath's last sweep point:
+    independent noise at s and R spp gives MAE(s vs R) = c sqrt(1/s + 1/R), the reference's own c / sqrt(R).
+    A graph image cannot measure below about this."""
+    last = volpath_run["trace"][-1]
+    c = last["MAE"] / np.sqrt(1.0 / last["spp"] + 1.0 / ref_spp)
+    return float(c / np.sqrt(ref_spp))
+
+
 def run_bench(
     quick: bool = False,
     scenes: list[str] | None = None,
@@ -212,6 +221,9 @@ def run_bench(
                         "graph_frame_s": round(frame_s, 4),
                         **{k: err[k] for k in ("MAE", "MPE", "MNE", "relMSE")},
                         "ref_mean": err["ref_mean"],
+                        # bias indicator that reference noise does not inflate, unlike MAE
+                        "mean_ratio": float(image.mean()) / max(err["ref_mean"], 1e-12),
+                        "ref_noise_pct": 100 * reference_noise(vp[0], ref_spp) / max(err["ref_mean"], 1e-12),
                         "MAE_pct_of_mean": 100 * err["MAE"] / max(err["ref_mean"], 1e-12),
                         "volpath_equal_error_s": round(best["seconds"], 4),
                         "volpath_rr": best["rr"],
@@ -253,6 +265,8 @@ COLUMNS = [
     "graph_frame_s",
     "MAE",
     "MAE_pct_of_mean",
+    "mean_ratio",
+    "ref_noise_pct",
     "MPE",
     "MNE",
     "relMSE",
