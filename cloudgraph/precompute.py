@@ -7,12 +7,13 @@ from __future__ import annotations
 
 import logging
 import time
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
 
 from .cache import CacheStore, graph_key, radiance_key, volume_id
-from .graph import Graph, build_graph, build_params
+from .graph import BuildParams, Graph, build_graph, build_params
 from .lighting import direct_radiance
 from .scene import Scene
 from .tracing import DensityField
@@ -45,6 +46,26 @@ class RadianceCache:
     stats: dict
 
 
+_VOLUME_IDS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def cache_keys(scene: Scene, volume: Volume, params: BuildParams) -> dict:
+    """volume_id, graph_key and radiance_key of a scene (the volume's hash is kept per object)."""
+    vid = _VOLUME_IDS.get(volume)
+    if vid is None:
+        vid = _VOLUME_IDS[volume] = volume_id(volume)
+    gkey = graph_key(vid, scene.medium.density_scale, params.to_dict())
+    rkey = radiance_key(
+        gkey,
+        scene.medium.albedo_rgb(),
+        scene.light.unit_direction(),
+        scene.light.irradiance_rgb(),
+        scene.render.max_depth,
+        LIGHTING,
+    )
+    return {"volume_id": vid, "graph_key": gkey, "radiance_key": rkey}
+
+
 def precompute(
     scene: Scene,
     volume: Volume,
@@ -60,18 +81,9 @@ def precompute(
     store = store or CacheStore()
     progress = progress or (lambda stage, fraction: None)
     params = build_params(volume, scene.medium.density_scale, quality, **build_overrides)
+    keys = cache_keys(scene, volume, params)
+    gkey, rkey = keys["graph_key"], keys["radiance_key"]
     light_dir = np.asarray(scene.light.unit_direction())
-    vid = volume_id(volume)
-    gkey = graph_key(vid, scene.medium.density_scale, params.to_dict())
-    rkey = radiance_key(
-        gkey,
-        scene.medium.albedo_rgb(),
-        light_dir,
-        scene.light.irradiance_rgb(),
-        scene.render.max_depth,
-        LIGHTING,
-    )
-    keys = {"volume_id": vid, "graph_key": gkey, "radiance_key": rkey}
 
     graph = store.load_graph(gkey)
     graph_reused = graph is not None
