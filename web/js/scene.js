@@ -1,0 +1,173 @@
+// The scene panel: volumes (list, upload), the up axis, medium, light and the quality preset.
+// values() is the scene without its camera; onVolume(info) when another volume (or up axis) is
+// chosen, onChange() when anything else that the cache depends on changes.
+
+import { $, formatBytes, h, readNumber, setText } from "./dom.js";
+import { AXES } from "./camera.js";
+import { LightWidget, lightDirection } from "./lightwidget.js";
+
+/** density_scale that gives the densest voxel an optical depth of 1. */
+export function defaultDensityScale(info) {
+  const vmax = info.value_range ? info.value_range[1] : 0;
+  const vs = info.voxel_size || [1, 1, 1];
+  const voxel = (vs[0] + vs[1] + vs[2]) / 3;
+  if (!(vmax > 0) || !(voxel > 0)) return 1;
+  return Number((1 / (vmax * voxel)).toPrecision(3));
+}
+
+function describeVolume(info) {
+  const [lo, hi] = info.index_bbox || [[0, 0, 0], [0, 0, 0]];
+  const dims = hi.map((v, i) => v - lo[i] + 1).join("×");
+  return `${info.filename || "volume"} · ${dims} voxels · ${formatBytes(info.bytes)}`;
+}
+
+export class ScenePanel {
+  constructor({ api, status, onVolume, onChange }) {
+    Object.assign(this, { api, status, onVolume, onChange });
+    this.volumes = new Map();
+    this.select = $("#volume-select");
+    this.file = $("#volume-file");
+    this.uploadState = $("#upload-state");
+    this.volumeInfo = $("#volume-info");
+    this.density = $("#density");
+    this.albedo = $("#albedo");
+    this.az = $("#light-az");
+    this.el = $("#light-el");
+    this.irradiance = $("#irradiance");
+    this.quality = $("#quality");
+    this.upAxis = $("#up-axis");
+
+    this.light = new LightWidget(
+      $("#light-canvas"),
+      (az, el) => {
+        this.az.value = az;
+        this.el.value = el;
+      },
+      () => this.onChange(),
+    );
+    this.light.set(Number(this.az.value), Number(this.el.value));
+    this.light.setAxes(this.axes());
+    this.upAxis.addEventListener("change", () => {
+      this.light.setAxes(this.axes());
+      this.onVolume(this.volume());
+    });
+
+    this.select.addEventListener("change", () => this.chooseVolume(this.select.value));
+    $("#volume-refresh").addEventListener("click", () => this.refresh(this.select.value));
+    this.file.addEventListener("change", () => this.upload());
+    $("#density-auto").addEventListener("click", () => {
+      const info = this.volume();
+      if (!info) return;
+      this.density.value = defaultDensityScale(info);
+      this.onChange();
+    });
+    for (const input of [this.density, this.albedo, this.irradiance, this.quality]) {
+      input.addEventListener("change", () => this.onChange());
+    }
+    for (const input of [this.az, this.el]) {
+      input.addEventListener("input", () => {
+        const az = Number(this.az.value);
+        const el = Number(this.el.value);
+        if (Number.isFinite(az) && Number.isFinite(el)) this.light.set(az, el);
+      });
+      input.addEventListener("change", () => this.onChange());
+    }
+  }
+
+  volume() {
+    return this.volumes.get(this.select.value) || null;
+  }
+
+  /** The world frame chosen for "up" (camera orbits and light elevation). */
+  axes() {
+    return AXES[this.upAxis.value] || AXES.y;
+  }
+
+  /** Reloads the list; selects ``selectId`` if given and present, else keeps or picks the first. */
+  async refresh(selectId = "") {
+    let list;
+    try {
+      list = await this.api.listVolumes();
+    } catch (err) {
+      this.status.error(err);
+      return;
+    }
+    const before = this.select.value;
+    this.volumes = new Map(list.map((v) => [v.id, v]));
+    const options = list.map((v) => h("option", { value: v.id }, describeVolume(v)));
+    if (!list.length) options.push(h("option", { value: "" }, "no volumes yet: upload one"));
+    this.select.replaceChildren(...options);
+    const want = [selectId, before].find((id) => id && this.volumes.has(id)) || (list[0] && list[0].id) || "";
+    this.select.value = want;
+    if (want !== before || selectId) this.chooseVolume(want);
+  }
+
+  chooseVolume(id) {
+    const info = this.volumes.get(id);
+    if (!info) {
+      setText(this.volumeInfo, "");
+      this.onVolume(null);
+      return;
+    }
+    this.density.value = defaultDensityScale(info);
+    const [lo, hi] = info.world_bbox;
+    setText(
+      this.volumeInfo,
+      `grid “${info.grid}” · voxel ${info.voxel_size[0].toPrecision(3)} · values ` +
+        `${info.value_range[0].toPrecision(3)}…${info.value_range[1].toPrecision(3)} · world ` +
+        `[${lo.map((v) => v.toFixed(1)).join(", ")}] – [${hi.map((v) => v.toFixed(1)).join(", ")}]`,
+    );
+    this.onVolume(info);
+  }
+
+  async upload() {
+    const file = this.file.files && this.file.files[0];
+    if (!file) return;
+    setText(this.uploadState, `uploading ${file.name} (${formatBytes(file.size)})…`);
+    this.uploadState.className = "busy";
+    try {
+      const { status, body } = await this.api.uploadVolume(file);
+      setText(this.uploadState, status === 201 ? `uploaded ${file.name}` : `${file.name} was already uploaded`);
+      this.uploadState.className = "ok";
+      this.status.info(`Volume ${file.name} is ready (${body.id.slice(0, 12)}…)`);
+      await this.refresh(body.id);
+    } catch (err) {
+      setText(this.uploadState, `upload of ${file.name} failed`);
+      this.uploadState.className = "failed";
+      this.status.error(err);
+    } finally {
+      this.file.value = "";
+    }
+  }
+
+  /** The scene without camera and render settings, validated; throws an Error in words. */
+  values() {
+    const info = this.volume();
+    if (!info) throw new Error("no volume selected: upload or select one");
+    const az = readNumber(this.az, { min: -360, max: 360 });
+    const el = readNumber(this.el, { min: -90, max: 90 });
+    return {
+      volume: { id: info.id },
+      medium: {
+        density_scale: readNumber(this.density, { min: 0 }),
+        albedo: readNumber(this.albedo, { min: 0, max: 1 }),
+      },
+      light: {
+        type: "directional",
+        direction: lightDirection(az, el, this.axes()),
+        irradiance: readNumber(this.irradiance, { min: 0 }),
+      },
+      quality: this.quality.value,
+    };
+  }
+
+  /** What a radiance cache depends on, as a string (null when the inputs are invalid). */
+  key() {
+    try {
+      const v = this.values();
+      return JSON.stringify([v.volume, v.medium, v.light, v.quality]);
+    } catch {
+      return null;
+    }
+  }
+}
