@@ -55,7 +55,11 @@ class VolumeStore:
             with open(tmp, "rb") as f:
                 head = f.read(8)
             ext = ".vdb" if len(head) == 8 and int.from_bytes(head, "little") == VDB_MAGIC else ".vol"
-            info = volume_info(tmp)  # raises VolumeError for anything unreadable
+            try:
+                info = volume_info(tmp)
+            except VolumeError as err:  # name the upload, not the temporary file
+                name = Path(filename).name or "the upload"
+                raise VolumeError(str(err).replace(tmp, name)) from None
             info.update(
                 {
                     "id": vid,
