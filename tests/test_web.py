@@ -391,7 +391,7 @@ def test_bad_upload_shows_error(page, tmp_path):
     page.wait_for_selector("#errors li")
     message = errors_shown(page)[0]
     assert "bad.vdb" in message and "422" in message
-    assert "neither an OpenVDB" in message
+    assert "bad.vdb is neither an OpenVDB" in message and ".tmp" not in message
     assert page.is_visible("#errors")
     assert "failed" in page.inner_text("#upload-state")
     shot(page, "10-bad-upload")
