@@ -37,23 +37,34 @@ def report(stage: str, fraction: float) -> None:
         raise JobCancelled(f"job {job.id} was cancelled")
 
 
-def _renderer(scene, volume, quality: str, progress):
-    from cloudgraph.integrators.graph import GraphRenderer
+def _precompute(scene, volume, quality: str, progress):
+    """The scene's radiance cache; the store is then trimmed to its size limit (LRU)."""
     from cloudgraph.precompute import precompute
+    from cloudgraph.store import evict_lru
 
     s = state()
     cache = precompute(scene, volume, quality, s.caches, progress)
-    key = (cache.keys["radiance_key"], quality)
-    return cache, s.renderers.get_or_make(key, lambda: GraphRenderer(cache, volume, scene))
+    evict_lru(s.caches.root, int(s.settings.CACHE_MAX_GB * 2**30))
+    return cache
+
+
+def _renderer(scene, volume, quality: str, progress):
+    """A loaded renderer for the scene's radiance cache, found by its keys before any file is read."""
+    from cloudgraph.graph import build_params
+    from cloudgraph.integrators.graph import GraphRenderer
+    from cloudgraph.precompute import cache_keys
+
+    keys = cache_keys(scene, volume, build_params(volume, scene.medium.density_scale, quality))
+    return state().renderers.get_or_make(
+        keys["radiance_key"],
+        lambda: GraphRenderer(_precompute(scene, volume, quality, progress), volume, scene),
+    )
 
 
 def precompute_job(scene: dict, quality: str) -> dict:
     """Builds (or finds) the radiance cache of a scene; returns its keys and stats."""
-    from cloudgraph.precompute import precompute
-
     sc = parse_scene(scene)
-    volume = state().volume(sc)
-    cache = precompute(sc, volume, quality, state().caches, report)
+    cache = _precompute(sc, state().volume(sc), quality, report)
     return {"keys": cache.keys, "stats": cache.stats}
 
 
@@ -64,7 +75,7 @@ def render_image(scene: dict, integrator: str, quality: str) -> tuple[np.ndarray
     sc = parse_scene(scene)
     volume = state().volume(sc)
     if integrator == "graph":
-        _, renderer = _renderer(sc, volume, quality, lambda s, f: report(s, 0.9 * f))
+        renderer = _renderer(sc, volume, quality, lambda s, f: report(s, 0.9 * f))
         report("render", 0.9)
         t0 = time.perf_counter()
         image = renderer.render(sc.camera, sc.render.spp, sc.render.seed)
