@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import json
 import time
@@ -13,7 +14,7 @@ from rq.exceptions import NoSuchJobError
 from rq.job import Job
 from rq.job import JobStatus as RQStatus
 
-from worker.jobs import cancel_key
+from worker.jobs import cancel_key, end_dependents
 
 from .schemas import JobPublic, JobStatus
 from .settings import Settings
@@ -93,6 +94,8 @@ def fetch(redis: Redis, job_id: str) -> Job | None:
 def status_of(job: Job) -> JobStatus:
     if job.meta.get("canceled"):
         return JobStatus.canceled
+    if job.meta.get("failed"):  # what it waited on failed (worker.jobs.end_dependents)
+        return JobStatus.failed
     return _STATUS.get(job.get_status(refresh=False), JobStatus.queued)
 
 
@@ -102,7 +105,9 @@ def describe(job: Job) -> JobPublic:
     st = status_of(job)
     meta = job.meta
     error = None
-    if st == JobStatus.failed:
+    if meta.get("error"):  # it waited on a job that failed or was cancelled
+        error = meta["error"]
+    elif st == JobStatus.failed:
         exc = job.latest_result().exc_string if job.latest_result() else (job.exc_info or "")
         error = _last_line(exc or "failed")
     fraction = float(meta.get("fraction", 0.0))
@@ -161,14 +166,22 @@ def cancel(redis: Redis, job: Job) -> None:
                 j.cancel()
             except Exception:  # already picked up: the flag stops it
                 pass
+            else:  # a running one's are ended by its worker
+                end_dependents(j, f"it waited on job {jid}, which was cancelled", failed=False)
 
 
-def wait_for(job: Job, timeout: float) -> JobStatus:
-    """Blocking poll, for use from a thread: the job's status once terminal or timed out."""
+async def await_job(job: Job, timeout: float, request) -> JobStatus:
+    """Polls a job until it ends or ``timeout`` passes. If the client goes away meanwhile, the job
+    is cancelled: a viewer that moved on does not leave stale renders in the queue."""
+    from fastapi.concurrency import run_in_threadpool
+
     end = time.monotonic() + timeout
     while True:
-        job.refresh()
+        await run_in_threadpool(job.refresh)
         st = status_of(job)
         if st in (JobStatus.finished, JobStatus.failed, JobStatus.canceled) or time.monotonic() > end:
             return st
-        time.sleep(0.05)
+        if await request.is_disconnected():
+            await run_in_threadpool(cancel, job.connection, job)
+            return JobStatus.canceled
+        await asyncio.sleep(0.05)

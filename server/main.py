@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 from fastapi import APIRouter, Depends, FastAPI, Request
@@ -9,6 +10,8 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 from redis import Redis
+from redis.exceptions import ConnectionError as RedisConnectionError
+from redis.exceptions import TimeoutError as RedisTimeoutError
 from rq import Queue
 
 from cloudgraph.errors import CloudgraphError
@@ -18,15 +21,46 @@ from .deps import require_key
 from .routes import animations, caches, health, jobs, renders, volumes
 from .settings import Settings
 
+log = logging.getLogger("cloudgraph.api")
 WEB = Path(__file__).resolve().parents[1] / "web"
 
 
 def _message(err: RequestValidationError) -> str:
     parts = []
     for e in err.errors():
-        loc = ".".join(str(p) for p in e.get("loc", ()) if p != "body")
-        parts.append(f"{loc}: {e.get('msg', '').removeprefix('Value error, ')}" if loc else e.get("msg", ""))
+        if e.get("type") == "json_invalid":  # loc is ("body", character offset)
+            why, at = e.get("ctx", {}).get("error", "decode error"), e.get("loc", ())[-1]
+            parts.append(f"the body is not valid JSON: {why} at character {at}")
+            continue
+        loc = ".".join(str(p) for p in e.get("loc", ()) if p != "body") or "the request body"
+        parts.append(f"{loc}: {e.get('msg', '').removeprefix('Value error, ')}")
     return "; ".join(parts) or "invalid request"
+
+
+class CountRequests:
+    """Counts requests by method, route and status for /metrics. Plain ASGI (not
+    BaseHTTPMiddleware), so that routes still see a client's disconnect."""
+
+    def __init__(self, app):
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        status = {"code": 500}
+
+        async def send_counting(message):
+            if message["type"] == "http.response.start":
+                status["code"] = message["status"]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_counting)
+        finally:
+            route = scope.get("route")
+            health.REQUESTS.labels(
+                scope["method"], getattr(route, "path", "unmatched"), str(status["code"])
+            ).inc()
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
@@ -49,14 +83,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def domain_error(request: Request, err: CloudgraphError):
         return JSONResponse({"detail": str(err)}, status_code=422)
 
-    @app.middleware("http")
-    async def count_requests(request: Request, call_next):
-        response = await call_next(request)
-        route = request.scope.get("route")
-        health.REQUESTS.labels(
-            request.method, getattr(route, "path", "unmatched"), str(response.status_code)
-        ).inc()
-        return response
+    @app.exception_handler(RedisConnectionError)
+    @app.exception_handler(RedisTimeoutError)
+    async def redis_down(request: Request, err: Exception):
+        log.warning("redis is not reachable: %s", err)
+        return JSONResponse(
+            {"detail": "the job store (Redis) is not reachable; try again shortly"},
+            status_code=503,
+            headers={"Retry-After": "5"},
+        )
+
+    app.add_middleware(CountRequests)
 
     v1 = APIRouter(prefix="/v1", dependencies=[Depends(require_key)])
     for r in (volumes, caches, renders, animations, jobs):

@@ -45,7 +45,7 @@ class Service:
         return f"http://127.0.0.1:{self.api_port}"
 
     def client(self, **kw) -> httpx.Client:
-        return httpx.Client(base_url=self.url, timeout=120, **kw)
+        return httpx.Client(base_url=self.url, **{"timeout": 120, **kw})
 
     def _log(self, name: str):
         f = open(self.data_dir / f"{name}.log", "ab")  # noqa: SIM115  (closed in stop())
@@ -55,10 +55,24 @@ class Service:
     def start_redis(self) -> None:
         (self.data_dir / "redis").mkdir(parents=True, exist_ok=True)
         self.redis = subprocess.Popen(
-            [shutil.which("redis-server") or "/usr/bin/redis-server", "--port", str(self.redis_port),
-             "--bind", "127.0.0.1", "--dir", str(self.data_dir / "redis"), "--appendonly", "yes",
-             "--appendfsync", "always", "--save", ""],
-            stdout=self._log("redis"), stderr=subprocess.STDOUT)
+            [
+                shutil.which("redis-server") or "/usr/bin/redis-server",
+                "--port",
+                str(self.redis_port),
+                "--bind",
+                "127.0.0.1",
+                "--dir",
+                str(self.data_dir / "redis"),
+                "--appendonly",
+                "yes",
+                "--appendfsync",
+                "always",
+                "--save",
+                "",
+            ],
+            stdout=self._log("redis"),
+            stderr=subprocess.STDOUT,
+        )
         wait_until(lambda: _ping(self.redis_port), 10, "redis-server did not start")
 
     def stop_redis(self) -> None:
@@ -66,16 +80,36 @@ class Service:
         self.redis.wait(10)
 
     def start_worker(self) -> subprocess.Popen:
-        w = subprocess.Popen([sys.executable, "-m", "worker"], cwd=ROOT, env=self.env,
-                             stdout=self._log(f"worker{len(self.workers)}"), stderr=subprocess.STDOUT)
+        w = subprocess.Popen(
+            [sys.executable, "-m", "worker"],
+            cwd=ROOT,
+            env=self.env,
+            stdout=self._log(f"worker{len(self.workers)}"),
+            stderr=subprocess.STDOUT,
+        )
         self.workers.append(w)
         return w
 
     def start_api(self) -> None:
         self.api = subprocess.Popen(
-            [sys.executable, "-m", "uvicorn", "--factory", "server.main:create_app", "--host", "127.0.0.1",
-             "--port", str(self.api_port), "--log-level", "warning"],
-            cwd=ROOT, env=self.env, stdout=self._log("api"), stderr=subprocess.STDOUT)
+            [
+                sys.executable,
+                "-m",
+                "uvicorn",
+                "--factory",
+                "server.main:create_app",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                str(self.api_port),
+                "--log-level",
+                "warning",
+            ],
+            cwd=ROOT,
+            env=self.env,
+            stdout=self._log("api"),
+            stderr=subprocess.STDOUT,
+        )
         wait_until(lambda: _get_ok(f"{self.url}/healthz"), 30, "the API did not start")
 
     def wait_ready(self, timeout: float = 60) -> None:
@@ -99,8 +133,12 @@ def start_service(data_dir: Path, workers: int = 1, **settings) -> Service:
     """Starts redis, ``workers`` workers and the API; ``settings`` become CLOUDGRAPH_* variables."""
     data_dir.mkdir(parents=True, exist_ok=True)
     redis_port, api_port = free_port(), free_port()
-    env = {**os.environ, "CLOUDGRAPH_DATA_DIR": str(data_dir),
-           "CLOUDGRAPH_REDIS_URL": f"redis://127.0.0.1:{redis_port}/0", "PYTHONUNBUFFERED": "1"}
+    env = {
+        **os.environ,
+        "CLOUDGRAPH_DATA_DIR": str(data_dir),
+        "CLOUDGRAPH_REDIS_URL": f"redis://127.0.0.1:{redis_port}/0",
+        "PYTHONUNBUFFERED": "1",
+    }
     env.update({f"CLOUDGRAPH_{k}": str(v) for k, v in settings.items()})
     svc = Service(data_dir, env, redis_port, api_port)
     try:

@@ -7,8 +7,11 @@ import threading
 
 from redis import Redis
 from rq import Queue, SimpleWorker
+from rq.job import JobStatus
 
 from server.settings import Settings
+
+from .jobs import cancel_key, end_dependents
 
 log = logging.getLogger("cloudgraph.worker")
 
@@ -42,6 +45,23 @@ class CloudgraphWorker(SimpleWorker):
             stop.set()
             t.join()
         self.set_state("idle")
+
+    def handle_job_failure(self, job, queue, started_job_registry=None, exc_string="", execution=None):
+        """A job that a client cancelled ends as stopped (the API says canceled), never retried:
+        RQ would otherwise retry its JobCancelled like any other error."""
+        cancelled = bool(self.connection.exists(cancel_key(job.id)))
+        if cancelled:
+            self._stopped_job_id = job.id
+        super().handle_job_failure(
+            job, queue, started_job_registry=started_job_registry, exc_string=exc_string, execution=execution
+        )
+        try:
+            if job.get_status() in (JobStatus.FAILED, JobStatus.STOPPED):  # not retried: the end
+                lines = [ln for ln in exc_string.strip().splitlines() if ln.strip()] or ["an error"]
+                why = "was cancelled" if cancelled else f"failed: {lines[-1]}"
+                end_dependents(job, f"it waited on job {job.id}, which {why}", failed=not cancelled)
+        except Exception:  # never let this end the worker's loop
+            log.exception("could not end the jobs waiting on %s", job.id)
 
 
 def main() -> None:

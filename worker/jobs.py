@@ -26,15 +26,42 @@ def cancel_key(job_id: str) -> str:
     return f"cloudgraph:cancel:{job_id}"
 
 
+def end_dependents(job, why: str, failed: bool) -> None:
+    """Ends the jobs that wait on ``job`` (and those that wait on them) with ``why`` as their
+    error, as failed or canceled. Once ``job`` has failed or been cancelled, RQ would leave them
+    deferred for ever: waiting, to clients, and taking room in the queue."""
+    from rq.exceptions import NoSuchJobError
+    from rq.job import Job, JobStatus
+
+    todo, seen = list(job.dependent_ids), set()
+    while todo:
+        jid = todo.pop()
+        if jid in seen:
+            continue
+        seen.add(jid)
+        try:
+            dep = Job.fetch(jid, connection=job.connection)
+        except NoSuchJobError:
+            continue
+        if dep.get_status() != JobStatus.DEFERRED:
+            continue
+        dep.meta.update({"error": why, "failed" if failed else "canceled": True})
+        dep.save_meta()
+        dep.cancel()
+        todo.extend(dep.dependent_ids)
+
+
 def report(stage: str, fraction: float) -> None:
     """Progress into the current job's meta; raises JobCancelled when a cancel was asked for."""
     job = get_current_job()
     if job is None:
         return
-    job.meta.update(stage=stage, fraction=round(float(fraction), 4))
-    job.save_meta()
     if job.connection.exists(cancel_key(job.id)):
         raise JobCancelled(f"job {job.id} was cancelled")
+    # Re-read the meta first: the API writes to it too (the cancel flag), and save_meta() writes
+    # the whole of it back.
+    job.get_meta(refresh=True).update(stage=stage, fraction=round(float(fraction), 4))
+    job.save_meta()
 
 
 def _precompute(scene, volume, quality: str, progress):

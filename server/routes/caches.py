@@ -6,6 +6,8 @@ from fastapi import APIRouter, HTTPException
 from fastapi.responses import JSONResponse
 from rq.job import Job
 
+from worker.jobs import cancel_key
+
 from ..deps import QueueDep, RedisDep, SettingsDep, VolumesDep
 from ..jobs import cache_id, check_capacity, describe, enqueue, fetch, status_of
 from ..schemas import CacheCreate, JobStatus
@@ -26,29 +28,33 @@ def ensure_cache(body: CacheCreate, redis, queue, settings, volumes) -> tuple[st
         body.max_depth,
         body.quality,
     )
-    job = fetch(redis, f"cache-{cid}")
-    if job is not None and status_of(job) not in (JobStatus.failed, JobStatus.canceled):
-        return cid, job
-    if job is not None:
-        job.delete()
-    check_capacity(queue, settings)
-    scene = {
-        "volume": body.volume.model_dump(),
-        "medium": body.medium.model_dump(),
-        "light": body.light.model_dump(),
-        "camera": {"eye": [0, 0, 1], "target": [0, 0, 0]},
-        "render": {"max_depth": body.max_depth},
-    }
-    job = enqueue(
-        queue,
-        settings,
-        "worker.jobs.precompute_job",
-        scene,
-        body.quality,
-        job_id=f"cache-{cid}",
-        kind="precompute",
-        meta={"result_url": f"/v1/caches/{cid}"},
-    )
+    job_id = f"cache-{cid}"
+    # One request at a time per cache: two at once would both enqueue it, and it would run twice.
+    with redis.lock(f"cloudgraph:lock:{job_id}", timeout=30, blocking_timeout=30):
+        job = fetch(redis, job_id)
+        if job is not None and status_of(job) not in (JobStatus.failed, JobStatus.canceled):
+            return cid, job
+        if job is not None:  # failed or cancelled: start afresh, without the old cancel flag
+            job.delete()
+            redis.delete(cancel_key(job.id))
+        check_capacity(queue, settings)
+        scene = {
+            "volume": body.volume.model_dump(),
+            "medium": body.medium.model_dump(),
+            "light": body.light.model_dump(),
+            "camera": {"eye": [0, 0, 1], "target": [0, 0, 0]},
+            "render": {"max_depth": body.max_depth},
+        }
+        job = enqueue(
+            queue,
+            settings,
+            "worker.jobs.precompute_job",
+            scene,
+            body.quality,
+            job_id=job_id,
+            kind="precompute",
+            meta={"result_url": f"/v1/caches/{cid}"},
+        )
     return cid, job
 
 

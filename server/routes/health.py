@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from datetime import UTC, datetime
+
 from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import Response
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, generate_latest
@@ -20,6 +22,18 @@ FAILED = Gauge("cloudgraph_jobs_failed", "failed jobs kept", registry=REGISTRY)
 WORKERS = Gauge("cloudgraph_workers", "live workers", registry=REGISTRY)
 
 
+def live_workers(request: Request) -> int:
+    """Workers that have beaten within HEARTBEAT_S + 15 s. (RQ's worker registry keeps a killed
+    worker until another worker's maintenance removes it: a lone worker's death never shows.)"""
+    limit = request.app.state.settings.HEARTBEAT_S + 15
+    now = datetime.now(UTC)
+    return sum(
+        1
+        for w in Worker.all(queue=request.app.state.queue)
+        if w.last_heartbeat is not None and (now - w.last_heartbeat).total_seconds() < limit
+    )
+
+
 @router.get("/healthz")
 def healthz() -> dict:
     """The API process is up."""
@@ -29,12 +43,12 @@ def healthz() -> dict:
 @router.get("/readyz")
 def readyz(request: Request) -> dict:
     """Redis answers and at least one worker is alive."""
-    redis, queue = request.app.state.redis, request.app.state.queue
+    redis = request.app.state.redis
     try:
         redis.ping()
     except Exception as err:
         raise HTTPException(503, f"redis is not reachable: {err}") from None
-    workers = Worker.count(queue=queue)
+    workers = live_workers(request)
     if workers < 1:
         raise HTTPException(503, "no worker is alive: start one with `python -m worker`")
     return {"status": "ready", "workers": workers}
@@ -48,7 +62,7 @@ def metrics(request: Request) -> Response:
         WAITING.set(queue.deferred_job_registry.count)
         RUNNING.set(queue.started_job_registry.count)
         FAILED.set(queue.failed_job_registry.count)
-        WORKERS.set(Worker.count(queue=queue))
+        WORKERS.set(live_workers(request))
     except Exception:  # Redis down: the request counters still come out
         pass
     return Response(generate_latest(REGISTRY), media_type=CONTENT_TYPE_LATEST)

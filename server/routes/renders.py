@@ -4,12 +4,11 @@ from __future__ import annotations
 
 import uuid
 
-from fastapi import APIRouter, HTTPException
-from fastapi.concurrency import run_in_threadpool
+from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import FileResponse, JSONResponse, Response
 
 from ..deps import QueueDep, RedisDep, SettingsDep, VolumesDep
-from ..jobs import check_capacity, describe, enqueue, fetch, status_of, wait_for
+from ..jobs import await_job, check_capacity, describe, enqueue, fetch, status_of
 from ..schemas import CacheCreate, JobStatus, RenderCreate
 from .caches import ensure_cache
 
@@ -41,7 +40,12 @@ def precompute_for(scene, quality, redis, queue, settings, volumes):
 
 @router.post("")
 async def create_render(
-    body: RenderCreate, redis: RedisDep, queue: QueueDep, settings: SettingsDep, volumes: VolumesDep
+    request: Request,
+    body: RenderCreate,
+    redis: RedisDep,
+    queue: QueueDep,
+    settings: SettingsDep,
+    volumes: VolumesDep,
 ):
     """Renders a scene. 200 with the image when it is small and its cache ready (or volpath and
     quick); else 202 with a job, which waits on the cache's precompute if that is still running."""
@@ -75,7 +79,7 @@ async def create_render(
     )
     small = scene.camera.width * scene.camera.height <= settings.SYNC_MAX_PIXELS
     if ready and small:
-        st = await run_in_threadpool(wait_for, job, settings.SYNC_WAIT_S)
+        st = await await_job(job, settings.SYNC_WAIT_S, request)
         if st == JobStatus.finished:
             return Response(
                 out.read_bytes(),
