@@ -115,15 +115,22 @@ def _atomic_write_text(path: Path, text: str) -> None:
 def evict_lru(root: str | Path, max_bytes: int, min_age_s: float = 300.0) -> list[Path]:
     """Deletes the least recently used files under ``root`` until they total at most ``max_bytes``.
 
-    Files used in the last ``min_age_s`` seconds are kept whatever the total, so a cache that a
+    Temporary files of killed writers older than ``min_age_s`` are removed too. Files used in
+    the last ``min_age_s`` seconds are kept whatever the total, so a cache that a
     job has just written or read is never removed under it; readers load whole files, and a
     deleted file stays readable to whoever has it open.
     """
+    now = time.time()
+    for tmp in Path(root).rglob(".*.tmp"):  # left by a writer that was killed mid-write
+        try:
+            if now - tmp.stat().st_mtime > min_age_s:
+                tmp.unlink()
+        except FileNotFoundError:
+            pass
     files = [p for p in Path(root).rglob("*.npz") if p.is_file()]
     stats = [(p, p.stat()) for p in files]
     total = sum(s.st_size for _, s in stats)
     removed = []
-    now = time.time()
     for p, s in sorted(stats, key=lambda ps: ps[1].st_mtime):
         if total <= max_bytes:
             break
