@@ -14,7 +14,7 @@ from cloudgraph.scene import CameraSpec
 from ..deps import QueueDep, RedisDep, SettingsDep, VolumesDep
 from ..jobs import check_capacity, describe, enqueue, fetch, status_of
 from ..schemas import AnimationCreate, JobStatus
-from .renders import check_limits, precompute_for
+from .renders import check_scene, precompute_for
 
 router = APIRouter(prefix="/animations", tags=["animations"])
 FRAMES_PER_JOB = 4
@@ -76,11 +76,9 @@ def create_animation(
 ):
     """Renders the frames as batch jobs across the workers, then encodes an MP4."""
     scene = body.scene
-    check_limits(scene, settings)
     if body.frames > settings.MAX_FRAMES:
         raise HTTPException(422, f"frames {body.frames} is over the limit of {settings.MAX_FRAMES}")
-    if scene.volume.id is None or volumes.info(scene.volume.id) is None:
-        raise HTTPException(404, f"no volume with id {scene.volume.id!r}; upload it with POST /v1/volumes")
+    check_scene(scene, settings, volumes)
     n_jobs = -(-body.frames // FRAMES_PER_JOB)
     check_capacity(queue, settings, extra=n_jobs + 1)
     pre = (

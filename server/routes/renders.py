@@ -16,7 +16,8 @@ router = APIRouter(prefix="/renders", tags=["renders"])
 MEDIA = {"png": "image/png", "exr": "image/x-exr"}
 
 
-def check_limits(scene, settings) -> None:
+def check_scene(scene, settings, volumes) -> None:
+    """Size and sample limits (422), then that the scene's volume was uploaded (404)."""
     c = scene.camera
     if max(c.width, c.height) > settings.MAX_IMAGE_SIDE:
         raise HTTPException(
@@ -24,6 +25,8 @@ def check_limits(scene, settings) -> None:
         )
     if scene.render.spp > settings.MAX_SPP:
         raise HTTPException(422, f"spp {scene.render.spp} is over the limit of {settings.MAX_SPP}")
+    if scene.volume.id is None or volumes.info(scene.volume.id) is None:
+        raise HTTPException(404, f"no volume with id {scene.volume.id!r}; upload it with POST /v1/volumes")
 
 
 def precompute_for(scene, quality, redis, queue, settings, volumes):
@@ -50,9 +53,7 @@ async def create_render(
     """Renders a scene. 200 with the image when it is small and its cache ready (or volpath and
     quick); else 202 with a job, which waits on the cache's precompute if that is still running."""
     scene = body.scene
-    check_limits(scene, settings)
-    if scene.volume.id is None or volumes.info(scene.volume.id) is None:
-        raise HTTPException(404, f"no volume with id {scene.volume.id!r}; upload it with POST /v1/volumes")
+    check_scene(scene, settings, volumes)
     check_capacity(queue, settings)
     depends, ready = None, True
     if body.integrator == "graph":
