@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 from .errors import CloudgraphError
+from .render import INTEGRATORS
 
 
 def _cmd_render(args: argparse.Namespace) -> None:
@@ -149,7 +150,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("render", help="render a scene spec to EXR (and PNG)")
     r.add_argument("scene", help="scene spec v1 JSON file")
-    r.add_argument("--integrator", choices=("volpath", "graph"), default="volpath")
+    r.add_argument("--integrator", choices=INTEGRATORS, default="volpath")
     r.add_argument("--out", required=True, help="output EXR (linear radiance)")
     r.add_argument("--png", help="also write an sRGB PNG here")
     r.add_argument("--exposure", type=float, default=0.0, help="PNG exposure in stops")

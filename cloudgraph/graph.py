@@ -344,14 +344,12 @@ def build_graph(volume: Volume, density_scale: float, params: BuildParams, progr
             tree = cKDTree(nodes)
             _, near = tree.query(new_points, workers=-1)
         # New flights are samples of their start node; their collisions are collisions too
-        base = len(points)
         points = np.concatenate([points, new_points])
         node_of = np.concatenate([node_of, near])
         dst_new = np.full(len(who), -1, np.int64)
         dst_new[collided] = near
         src = np.concatenate([src, who])
         dst = np.concatenate([dst, dst_new])
-        del base
     t_reinforce = time.perf_counter() - t0
 
     # Counts, then search ranges from the k nearest nodes (Eq. 4.21, thesis §4.3.2)
