@@ -1,8 +1,11 @@
-"""Independent expectations for tests: camera rays and ray-box chords computed in numpy."""
+"""Shared test helpers: camera rays and ray-box chords computed in numpy (independent
+expectations), and small volumes with exactly known placement."""
 
 from __future__ import annotations
 
 import numpy as np
+
+from cloudgraph.volume import box_volume
 
 
 def pixel_rays(eye, target, up, fov_deg: float, width: int, height: int):
@@ -29,3 +32,43 @@ def box_interval(origin, dirs, lo, hi):
     t0 = np.nanmax(np.minimum(a, b), axis=-1)
     t1 = np.nanmin(np.maximum(a, b), axis=-1)
     return np.maximum(t0, 0.0), t1
+
+
+def cube_volume(sigma: float, n: int = 8):
+    """A homogeneous cube filling exactly [-1, 1]^3 (n voxels a side, half-voxel rule)."""
+    s = 2.0 / n
+    m = np.diag([s, s, s, 1.0])
+    m[:3, 3] = -1.0 + 0.5 * s
+    return box_volume((n, n, n), density=sigma, index_to_world=m)
+
+
+def rotated_affine() -> np.ndarray:
+    """A rotated, non-uniformly scaled and translated index-to-world map."""
+    a, b = np.radians(30), np.radians(20)
+    rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    rx = np.array([[1, 0, 0], [0, np.cos(b), -np.sin(b)], [0, np.sin(b), np.cos(b)]])
+    m = np.eye(4)
+    m[:3, :3] = rz @ rx @ np.diag([0.1, 0.15, 0.12])
+    m[:3, 3] = [0.3, -0.2, 0.1]
+    return m
+
+
+#: Light as in the bench: oblique, mostly towards -z.
+LIGHT = [0.55, -0.25, -0.8]
+
+
+def framed_camera(volume, eye_dir=(0.6, 0.0, 0.8), size=40) -> dict:
+    """A camera on ``eye_dir`` from the box centre whose view just holds the box's inscribed ball."""
+    lo, hi = volume.world_bbox()
+    c = (lo + hi) / 2
+    dist = 2.0 * float(np.linalg.norm(hi - lo))
+    fov = float(np.degrees(2 * np.arcsin(0.5 * float((hi - lo).max()) / dist)) * 1.1)
+    eye = c + dist * np.asarray(eye_dir, float) / np.linalg.norm(eye_dir)
+    return {
+        "eye": eye.tolist(),
+        "target": c.tolist(),
+        "up": [0, 1, 0],
+        "fov": fov,
+        "width": size,
+        "height": size,
+    }

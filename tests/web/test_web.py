@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from .service import ROOT, start_service
+from ..harness import ROOT, start_service
 
 sync_api = pytest.importorskip("playwright.sync_api")
 

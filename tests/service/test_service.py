@@ -1,6 +1,6 @@
 """The render service against real processes: redis-server, `python -m worker`, uvicorn.
 
-Nothing is mocked. Each fixture starts a whole service (tests/service.py) on free ports with its
+Nothing is mocked. Each fixture starts a whole service (tests/harness.py) on free ports with its
 data in a temporary folder; Redis is also read directly to check what really ran.
 """
 
@@ -22,8 +22,8 @@ from rq import Worker
 from rq.job import Job, JobStatus
 from rq.results import Result
 
-from .conftest import DATA
-from .service import Service, start_service, wait_until
+from ..conftest import DATA
+from ..harness import Service, start_service, wait_until
 
 FOG = DATA / "fog_sphere.vdb"  # 78 KB: a draft cache in well under a second
 BLENDER = DATA / "blender_smoke_000002.vdb"  # 300 KB: a draft cache in a few seconds, every stage

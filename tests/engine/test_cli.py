@@ -1,15 +1,18 @@
 """The command line, run as users run it: a subprocess, one line per error, no traceback."""
 
 import json
+import re
 import subprocess
 import sys
 
 import numpy as np
 import pytest
 
-from cloudgraph.volume import write_vdb
+from cloudgraph.cache import CacheStore, graph_key, volume_id
+from cloudgraph.graph import build_params
+from cloudgraph.volume import load_volume, sphere_volume, write_vdb
 
-from .test_volpath import cube_volume
+from ..helpers import LIGHT, cube_volume, framed_camera
 
 
 def cli(*args, cwd=None):
@@ -92,3 +95,49 @@ def test_bad_input_exits_non_zero_with_one_line(scene_file, tmp_path, args, word
     assert r.returncode == 2
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and words in lines[0] and "Traceback" not in r.stderr
+
+
+def test_cli_precompute_prints_keys_and_sizes_and_render_uses_the_cache(variant, tmp_path):
+    from cloudgraph.image import read_exr
+
+    volume = sphere_volume(16)
+    write_vdb(volume, tmp_path / "ball.vdb")
+    doc = {
+        "volume": {"path": "ball.vdb"},
+        "medium": {"density_scale": 0.5, "albedo": 0.8},
+        "light": {"direction": LIGHT},
+        "camera": {**framed_camera(volume), "width": 32, "height": 24},
+        "render": {"spp": 4},
+    }
+    (tmp_path / "scene.json").write_text(json.dumps(doc))
+    cache_dir = tmp_path / "cache"
+
+    r = cli("precompute", tmp_path / "scene.json", "--quality", "draft", "--cache-dir", cache_dir)
+    assert r.returncode == 0, r.stderr
+    keys = dict(re.findall(r"^(volume_id|graph_key|radiance_key): ([0-9a-f]{64})$", r.stdout, re.M))
+    assert set(keys) == {"volume_id", "graph_key", "radiance_key"}
+    sizes = re.search(r"^nodes (\d+)\s+edges (\d+)", r.stdout, re.M)
+    assert sizes, r.stdout
+    assert "graph built" in r.stdout and "radiance computed" in r.stdout
+    # The keys are those of the volume as read back and of the draft parameters ...
+    loaded = load_volume(tmp_path / "ball.vdb")
+    assert keys["volume_id"] == volume_id(loaded)
+    assert keys["graph_key"] == graph_key(
+        keys["volume_id"], 0.5, build_params(loaded, 0.5, "draft").to_dict()
+    )
+    # ... and the sizes those of the graph it stored under its key.
+    graph = CacheStore(cache_dir).load_graph(keys["graph_key"])
+    assert (graph.n_nodes, graph.counts.nnz) == (int(sizes[1]), int(sizes[2]))
+    assert graph.n_nodes > 100
+
+    r = cli(
+        "render", tmp_path / "scene.json", "--integrator", "graph", "--quality", "draft",
+        "--cache-dir", cache_dir, "--out", tmp_path / "g.exr",
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert "graph: 32x24 at 4 spp" in r.stdout
+    image = read_exr(tmp_path / "g.exr")
+    assert image.shape == (24, 32, 3) and np.isfinite(image).all() and image.mean() > 0
+    # the render found the cache: nothing new was built
+    assert [p.stem for p in (cache_dir / "graphs").iterdir()] == [keys["graph_key"]]
+    assert [p.stem for p in (cache_dir / "radiance").iterdir()] == [keys["radiance_key"]]

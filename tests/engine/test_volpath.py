@@ -7,16 +7,7 @@ from cloudgraph.render import render_volpath
 from cloudgraph.scene import parse_scene
 from cloudgraph.volume import box_volume, load_volume, write_vdb
 
-from .helpers import box_interval, pixel_rays
-from .test_volume import rotated_affine
-
-
-def cube_volume(sigma: float, n: int = 8) -> "box_volume":
-    """A homogeneous cube filling exactly [-1, 1]^3 (n voxels a side, half-voxel rule)."""
-    s = 2.0 / n
-    m = np.diag([s, s, s, 1.0])
-    m[:3, 3] = -1.0 + 0.5 * s
-    return box_volume((n, n, n), density=sigma, index_to_world=m)
+from ..helpers import box_interval, cube_volume, pixel_rays, rotated_affine
 
 
 def scene_for(camera: dict, **sections) -> "parse_scene":

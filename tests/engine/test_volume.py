@@ -18,17 +18,7 @@ from cloudgraph.volume import (
     write_vol,
 )
 
-
-def rotated_affine() -> np.ndarray:
-    """A rotated, non-uniformly scaled and translated index-to-world map."""
-    a, b = np.radians(30), np.radians(20)
-    rz = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
-    rx = np.array([[1, 0, 0], [0, np.cos(b), -np.sin(b)], [0, np.sin(b), np.cos(b)]])
-    m = np.eye(4)
-    m[:3, :3] = rz @ rx @ np.diag([0.1, 0.15, 0.12])
-    m[:3, 3] = [0.3, -0.2, 0.1]
-    return m
-
+from ..helpers import rotated_affine
 
 # ------------------------------------------------------------------ real files
 

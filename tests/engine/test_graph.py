@@ -1,5 +1,5 @@
 """The graph radiance cache (thesis §4.3-4.6): graph counts, accuracy against volpath, the cache
-keys and their reuse, determinism, kernel reuse across cameras, and the CLI.
+keys and their reuse, determinism and kernel reuse across cameras.
 
 Expectations come from outside the method: Mitsuba's volpath (Russian roulette off) for images,
 the closed-form escape probability of a homogeneous sphere for the graph's counts, and a direct
@@ -7,42 +7,18 @@ sparse solve for the transport. Volumes are small (16^3-32^3) so that the file r
 a minute and a half on two CPU cores.
 """
 
-import json
-import re
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from cloudgraph.cache import CacheStore, graph_key, volume_id
-from cloudgraph.graph import build_params
+from cloudgraph.cache import CacheStore
 from cloudgraph.precompute import precompute
 from cloudgraph.render import render_volpath
 from cloudgraph.scene import parse_scene
-from cloudgraph.volume import load_volume, noise_volume, sphere_volume, write_vdb
+from cloudgraph.volume import noise_volume, sphere_volume
 
-#: Light as in the bench: oblique, mostly towards -z.
-LIGHT = [0.55, -0.25, -0.8]
-
-
-def framed_camera(volume, eye_dir=(0.6, 0.0, 0.8), size=40) -> dict:
-    """A camera on ``eye_dir`` from the box centre whose view just holds the box's inscribed ball."""
-    lo, hi = volume.world_bbox()
-    c = (lo + hi) / 2
-    dist = 2.0 * float(np.linalg.norm(hi - lo))
-    fov = float(np.degrees(2 * np.arcsin(0.5 * float((hi - lo).max()) / dist)) * 1.1)
-    eye = c + dist * np.asarray(eye_dir, float) / np.linalg.norm(eye_dir)
-    return {
-        "eye": eye.tolist(),
-        "target": c.tolist(),
-        "up": [0, 1, 0],
-        "fov": fov,
-        "width": size,
-        "height": size,
-    }
+from ..helpers import LIGHT, framed_camera
 
 
 def medium_scene(volume, density_scale: float, albedo: float = 0.9, spp: int = 16, **camera):
@@ -292,58 +268,3 @@ def test_moving_the_camera_launches_only_kernels_already_compiled(sphere):
         if k["hash"] not in known or not k["cache_hit"] or k["cache_disk"]
     ]
     assert not new, f"kernels compiled for the moved camera: {new}"
-
-
-# ------------------------------------------------------------------ 7. command line
-
-
-def cli(*args):
-    return subprocess.run(
-        [sys.executable, "-m", "cloudgraph.cli", *map(str, args)], capture_output=True, text=True, timeout=300
-    )
-
-
-def test_cli_precompute_prints_keys_and_sizes_and_render_uses_the_cache(variant, tmp_path):
-    from cloudgraph.image import read_exr
-
-    volume = sphere_volume(16)
-    write_vdb(volume, tmp_path / "ball.vdb")
-    doc = {
-        "volume": {"path": "ball.vdb"},
-        "medium": {"density_scale": 0.5, "albedo": 0.8},
-        "light": {"direction": LIGHT},
-        "camera": {**framed_camera(volume), "width": 32, "height": 24},
-        "render": {"spp": 4},
-    }
-    (tmp_path / "scene.json").write_text(json.dumps(doc))
-    cache_dir = tmp_path / "cache"
-
-    r = cli("precompute", tmp_path / "scene.json", "--quality", "draft", "--cache-dir", cache_dir)
-    assert r.returncode == 0, r.stderr
-    keys = dict(re.findall(r"^(volume_id|graph_key|radiance_key): ([0-9a-f]{64})$", r.stdout, re.M))
-    assert set(keys) == {"volume_id", "graph_key", "radiance_key"}
-    sizes = re.search(r"^nodes (\d+)\s+edges (\d+)", r.stdout, re.M)
-    assert sizes, r.stdout
-    assert "graph built" in r.stdout and "radiance computed" in r.stdout
-    # The keys are those of the volume as read back and of the draft parameters ...
-    loaded = load_volume(tmp_path / "ball.vdb")
-    assert keys["volume_id"] == volume_id(loaded)
-    assert keys["graph_key"] == graph_key(
-        keys["volume_id"], 0.5, build_params(loaded, 0.5, "draft").to_dict()
-    )
-    # ... and the sizes those of the graph it stored under its key.
-    graph = CacheStore(cache_dir).load_graph(keys["graph_key"])
-    assert (graph.n_nodes, graph.counts.nnz) == (int(sizes[1]), int(sizes[2]))
-    assert graph.n_nodes > 100
-
-    r = cli(
-        "render", tmp_path / "scene.json", "--integrator", "graph", "--quality", "draft",
-        "--cache-dir", cache_dir, "--out", tmp_path / "g.exr",
-    )  # fmt: skip
-    assert r.returncode == 0, r.stderr
-    assert "graph: 32x24 at 4 spp" in r.stdout
-    image = read_exr(tmp_path / "g.exr")
-    assert image.shape == (24, 32, 3) and np.isfinite(image).all() and image.mean() > 0
-    # the render found the cache: nothing new was built
-    assert [p.stem for p in (cache_dir / "graphs").iterdir()] == [keys["graph_key"]]
-    assert [p.stem for p in (cache_dir / "radiance").iterdir()] == [keys["radiance_key"]]
