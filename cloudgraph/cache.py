@@ -16,14 +16,16 @@ import json
 import os
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.sparse as sp
 
 from . import ENGINE_FORMAT_VERSION
 from .errors import CacheError
-from .graph import Graph
-from .volume import Volume
+
+if TYPE_CHECKING:  # the API process imports this module; it must not load the renderer
+    from .graph import Graph
+    from .volume import Volume
 
 
 def _digest(obj) -> str:
@@ -100,6 +102,10 @@ class CacheStore:
         )
 
     def load_graph(self, key: str) -> Graph | None:
+        import scipy.sparse as sp
+
+        from .graph import Graph
+
         z = _load(self.graph_path(key), "graph")
         if z is None:
             return None

@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 from .errors import CloudgraphError
-from .render import INTEGRATORS
+from .options import ESTIMATORS, INTEGRATORS, QUALITIES
 
 
 def _cmd_render(args: argparse.Namespace) -> None:
@@ -157,13 +157,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--spp", type=int, help="override render.spp")
     r.add_argument(
         "--quality",
-        choices=("draft", "default", "high"),
+        choices=QUALITIES,
         default="default",
         help="graph cache preset (graph integrator)",
     )
     r.add_argument(
         "--estimator",
-        choices=("gather", "free_flight", "march"),
+        choices=ESTIMATORS,
         default="gather",
         help="graph: camera-stage estimator (free_flight is the thesis's; see integrators/graph.py)",
     )
@@ -173,7 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     pc = sub.add_parser("precompute", help="build (or find) the graph radiance cache of a scene")
     pc.add_argument("scene")
-    pc.add_argument("--quality", choices=("draft", "default", "high"), default="default")
+    pc.add_argument("--quality", choices=QUALITIES, default="default")
     pc.add_argument("--cache-dir", help="cache folder (default $CLOUDGRAPH_CACHE_DIR or ~/.cache/cloudgraph)")
     pc.set_defaults(func=_cmd_precompute)
 

@@ -8,8 +8,6 @@ from .errors import SceneError
 from .scene import Scene
 from .volume import Volume, load_volume
 
-INTEGRATORS = ("volpath", "graph")
-
 
 def scene_volume(scene: Scene) -> Volume:
     """Loads the scene's volume from ``volume.path`` (ids are resolved by the service)."""
