@@ -1,0 +1,173 @@
+"""Synthetic radiance fields in the route's binary layout, and an independent numpy ray march of
+them (fine steps, no skipping), to check the page's decoder and WebGL2 march without a server.
+
+Layout (api.md, GET /v1/caches/{id}/field): b"CGFIELD1", uint32 LE header length, JSON header,
+then float16 little-endian C-order arrays at 16-byte aligned offsets.
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+import math
+
+import numpy as np
+from scipy.ndimage import map_coordinates
+
+from ..helpers import box_interval, pixel_rays
+
+
+def make_field(shape=(24, 20, 28), unit_to_world=None, block=4, seed=1) -> dict:
+    """A blob of medium in part of the unit cube, with empty corners for the majorant to skip.
+
+    shape: (nz, ny, nx) of the density grid; the radiance grid is half as fine.
+    Returns {"header": dict, "arrays": {name: float32 array of the decoded values}} where the
+    values are the float16 values the page sees (scale applied).
+    """
+    rng = np.random.default_rng(seed)
+    nz, ny, nx = shape
+    if unit_to_world is None:
+        unit_to_world = np.diag([2.0, 1.6, 2.4, 1.0])
+        unit_to_world[:3, 3] = [-1.0, -0.7, -1.1]
+    z, y, x = np.meshgrid(*[(np.arange(n) + 0.5) / n for n in shape], indexing="ij")
+    r = np.sqrt((x - 0.55) ** 2 + (y - 0.45) ** 2 + (z - 0.5) ** 2)
+    sigma = np.clip(1.0 - r / 0.38, 0, None) * (0.7 + 0.3 * rng.random(shape)) * 9.0
+    sigma[r > 0.38] = 0.0
+    tau = 3.0 * np.clip(1.2 - y, 0, None) * (sigma > 0) + 0.2 * x
+    mz, my, mx = (nz + 1) // 2, (ny + 1) // 2, (nx + 1) // 2
+    mzz, myy, mxx = np.meshgrid(*[(np.arange(n) + 0.5) / n for n in (mz, my, mx)], indexing="ij")
+    rad = np.stack([0.05 + 0.04 * mxx, 0.04 + 0.05 * myy, 0.06 * (1 - mzz) + 0.01], axis=-1)
+
+    sigma_scale = float(sigma.max()) / 1000.0
+    rad_scale = rad.reshape(-1, 3).max(axis=0) / 1000.0
+    q = {
+        "sigma_t": (sigma / sigma_scale).astype(np.float16),
+        "tau_light": tau.astype(np.float16),
+        "radiance_ms": (rad / rad_scale).astype(np.float16),
+    }
+    # majorant: max over each block, dilated by one voxel
+    pad = np.pad(q["sigma_t"].astype(np.float32), 1, mode="edge")
+    bz, by, bx = (math.ceil(n / block) for n in shape)
+    maj = np.zeros((bz, by, bx), np.float32)
+    for k in range(bz):
+        for j in range(by):
+            for i in range(bx):
+                maj[k, j, i] = pad[
+                    k * block : (k + 1) * block + 2,
+                    j * block : (j + 1) * block + 2,
+                    i * block : (i + 1) * block + 2,
+                ].max()
+    q["majorant"] = maj.astype(np.float16)
+    lo = unit_to_world @ np.array([0, 0, 0, 1.0])
+    hi = unit_to_world @ np.array([1, 1, 1, 1.0])
+    voxel = np.linalg.norm(unit_to_world[:3, :3] / np.array([nx, ny, nz]), axis=0).min()
+    header = {
+        "format": "cloudgraph-field",
+        "version": 1,
+        "radiance_key": f"synthetic-{seed}",
+        "unit_to_world": unit_to_world.tolist(),
+        "world_bbox": [np.minimum(lo, hi)[:3].tolist(), np.maximum(lo, hi)[:3].tolist()],
+        "light": {"direction": [0.0, -1.0, 0.0], "irradiance": [1.0, 0.9, 0.8]},
+        "albedo": [0.95, 0.9, 0.85],
+        "step": float(voxel / 2),
+        "arrays": {
+            "sigma_t": {"dtype": "float16", "shape": list(shape), "scale": sigma_scale},
+            "tau_light": {"dtype": "float16", "shape": list(shape), "scale": 1},
+            "radiance_ms": {"dtype": "float16", "shape": [mz, my, mx, 3], "scale": rad_scale.tolist()},
+            "majorant": {"dtype": "float16", "shape": [bz, by, bx], "scale": sigma_scale, "block": block},
+        },
+    }
+    values = {
+        "sigma_t": q["sigma_t"].astype(np.float32) * sigma_scale,
+        "tau_light": q["tau_light"].astype(np.float32),
+        "radiance_ms": q["radiance_ms"].astype(np.float32) * rad_scale.astype(np.float32),
+    }
+    return {"header": header, "raw": q, "values": values}
+
+
+def encode(field: dict, compress: bool = False) -> bytes:
+    """The route's body for ``field`` (gzip-compressed when ``compress``)."""
+    header = json.loads(json.dumps(field["header"]))
+    names = ["sigma_t", "tau_light", "radiance_ms", "majorant"]
+    # offsets depend on the header's length, which depends on the offsets: iterate to a fixpoint
+    offsets = {n: 0 for n in names}
+    for _ in range(4):
+        for n in names:
+            header["arrays"][n]["offset"] = offsets[n]
+        text = json.dumps(header).encode()
+        pos = 12 + len(text)
+        new = {}
+        for n in names:
+            pos = (pos + 15) // 16 * 16
+            new[n] = pos
+            pos += field["raw"][n].nbytes
+        if new == offsets:
+            break
+        offsets = new
+    body = bytearray(b"CGFIELD1" + len(text).to_bytes(4, "little") + text)
+    for n in names:
+        body.extend(b"\0" * (offsets[n] - len(body)))
+        body.extend(field["raw"][n].astype("<f2").tobytes())
+    return gzip.compress(bytes(body)) if compress else bytes(body)
+
+
+def _sample(grid: np.ndarray, unit: np.ndarray) -> np.ndarray:
+    """Trilinear lookup at unit coordinates (N, 3) (x, y, z) of a (nz, ny, nx[, c]) grid, values
+    at texel centres, clamped at the edges (what LINEAR + CLAMP_TO_EDGE does)."""
+    nz, ny, nx = grid.shape[:3]
+    coords = np.stack([unit[:, 2] * nz - 0.5, unit[:, 1] * ny - 0.5, unit[:, 0] * nx - 0.5])
+    if grid.ndim == 3:
+        return map_coordinates(grid, coords, order=1, mode="nearest")
+    return np.stack(
+        [map_coordinates(grid[..., c], coords, order=1, mode="nearest") for c in range(grid.shape[3])], -1
+    )
+
+
+def reference_render(field: dict, camera: dict, exposure: float = 0.0, substeps: int = 4) -> np.ndarray:
+    """The field's image (H, W, 3) as 8-bit sRGB, by the spec's march with segments of
+    step / ``substeps`` at their midpoints (converges to the same integral as any jitter)."""
+    h = field["header"]
+    v = field["values"]
+    m = np.asarray(h["unit_to_world"], float)
+    inv = np.linalg.inv(m)
+    d = pixel_rays(
+        camera["eye"], camera["target"], camera["up"], camera["fov"], camera["width"], camera["height"]
+    )
+    d = d.reshape(-1, 3)
+    o_u = inv[:3, :3] @ np.asarray(camera["eye"], float) + inv[:3, 3]
+    d_u = d @ inv[:3, :3].T
+    t0, t1 = box_interval(o_u, d_u, [0, 0, 0], [1, 1, 1])
+    hit = t1 > t0
+    step = h["step"] / substeps
+    n = np.where(hit, np.ceil((t1 - t0) / step), 0).astype(int)
+    dt = np.where(hit, (t1 - t0) / np.maximum(n, 1), 0)
+    L = np.zeros((len(d), 3))
+    Tr = np.ones(len(d))
+    direct = np.asarray(h["light"]["irradiance"]) / (4 * math.pi)
+    albedo = np.asarray(h["albedo"])
+    for k in range(int(n.max(initial=0))):
+        live = k < n
+        idx = np.nonzero(live)[0]
+        t = t0[idx] + (k + 0.5) * dt[idx]
+        p = o_u + t[:, None] * d_u[idx]
+        s = _sample(v["sigma_t"], p)
+        tau = _sample(v["tau_light"], p)
+        rad = _sample(v["radiance_ms"], p)
+        a = np.exp(-s * dt[idx])
+        L_in = direct * np.exp(-tau)[:, None] + rad  # L_in = E exp(-tau) / 4pi + L_ms
+        L[idx] += (Tr[idx] * (1 - a))[:, None] * albedo * L_in
+        Tr[idx] *= a
+    x = np.clip(L * 2.0**exposure, 0, 1)
+    srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
+    return np.round(srgb * 255).reshape(camera["height"], camera["width"], 3)
+
+
+def rel_mae(test: np.ndarray, ref: np.ndarray) -> float:
+    """relMAE of two 8-bit sRGB images on linear values (as the page's compareImages)."""
+
+    def lin(a):
+        c = np.asarray(a, float) / 255
+        return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+    a, b = lin(test), lin(ref)
+    return float(np.abs(a - b).mean() / b.mean())

@@ -1,0 +1,148 @@
+// The radiance field of a cache (GET /v1/caches/{id}/field): fetched once, decoded here into
+// typed-array views on the body, never copied. Layout (api.md): "CGFIELD1", a uint32 LE header
+// length H, H bytes of JSON, then little-endian C-order arrays at the header's byte offsets.
+
+export const MAGIC = "CGFIELD1";
+const FORMAT = "cloudgraph-field";
+
+/** An error in the field's bytes or header; ``message`` is meant for people. */
+export class FieldError extends Error {
+  constructor(message) {
+    super(message);
+    this.name = "FieldError";
+  }
+}
+
+const ARRAYS = {
+  sigma_t: { dims: 3 },
+  tau_light: { dims: 3 },
+  radiance_ms: { dims: 4, channels: 3 },
+  majorant: { dims: 3 },
+};
+
+function vec(v, n, what) {
+  if (!Array.isArray(v) || v.length !== n || !v.every(Number.isFinite)) {
+    throw new FieldError(`the field's header has no valid ${what} (${n} numbers)`);
+  }
+  return v.map(Number);
+}
+
+/**
+ * Decodes a field body (an ArrayBuffer, already gunzipped by fetch).
+ *
+ * Returns { header, unitToWorld (16 numbers, row-major), worldToUnit (16, row-major),
+ * worldBbox, light: { direction, irradiance }, albedo, step (world units),
+ * arrays: { name: { data: Uint16Array of float16 bits, shape, scale } }, bytes }.
+ * Throws FieldError naming what is wrong.
+ */
+export function decodeField(buffer) {
+  if (!(buffer instanceof ArrayBuffer) || buffer.byteLength < 12) {
+    throw new FieldError("the answer is too short to be a cloudgraph field");
+  }
+  const bytes = new Uint8Array(buffer);
+  const magic = String.fromCharCode(...bytes.subarray(0, 8));
+  if (magic !== MAGIC) throw new FieldError("the answer is not a cloudgraph field (wrong magic bytes)");
+  const headerLength = new DataView(buffer).getUint32(8, true);
+  if (12 + headerLength > buffer.byteLength) throw new FieldError("the field's header is cut short");
+  let header;
+  try {
+    header = JSON.parse(new TextDecoder().decode(bytes.subarray(12, 12 + headerLength)));
+  } catch {
+    throw new FieldError("the field's header is not JSON");
+  }
+  if (header.format !== FORMAT || header.version !== 1) {
+    throw new FieldError(`unsupported field format ${JSON.stringify(header.format)} version ${header.version}`);
+  }
+  const unitToWorld = vec((header.unit_to_world || []).flat(), 16, "unit_to_world");
+  const arrays = {};
+  for (const [name, spec] of Object.entries(ARRAYS)) {
+    const a = header.arrays && header.arrays[name];
+    if (!a) throw new FieldError(`the field has no ${name} array`);
+    if (a.dtype !== "float16") throw new FieldError(`${name}: dtype ${a.dtype} is not supported (float16 only)`);
+    const shape = a.shape;
+    if (!Array.isArray(shape) || shape.length !== spec.dims || !shape.every((n) => Number.isInteger(n) && n > 0)) {
+      throw new FieldError(`${name}: bad shape ${JSON.stringify(shape)}`);
+    }
+    if (spec.channels && shape[3] !== spec.channels) throw new FieldError(`${name}: expected ${spec.channels} channels`);
+    const count = shape.reduce((p, n) => p * n, 1);
+    if (!Number.isInteger(a.offset) || a.offset % 2 || a.offset < 12 + headerLength || a.offset + 2 * count > buffer.byteLength) {
+      throw new FieldError(`${name}: its bytes lie outside the body`);
+    }
+    const scale = spec.channels ? vec(a.scale, 3, `${name} scale`) : Number(a.scale ?? 1);
+    if (!spec.channels && !Number.isFinite(scale)) throw new FieldError(`${name}: bad scale`);
+    arrays[name] = { data: new Uint16Array(buffer, a.offset, count), shape, scale, block: a.block };
+  }
+  if (arrays.sigma_t.shape.join() !== arrays.tau_light.shape.join()) {
+    throw new FieldError("sigma_t and tau_light differ in shape");
+  }
+  if (!(Number.isInteger(arrays.majorant.block) && arrays.majorant.block > 0)) {
+    throw new FieldError("majorant: no block size");
+  }
+  const step = Number(header.step);
+  if (!(step > 0)) throw new FieldError("the field's header has no valid step");
+  const light = header.light || {};
+  return {
+    header,
+    unitToWorld,
+    worldToUnit: invertAffine(unitToWorld),
+    worldBbox: header.world_bbox,
+    light: { direction: vec(light.direction, 3, "light.direction"), irradiance: vec(light.irradiance, 3, "light.irradiance") },
+    albedo: vec(header.albedo, 3, "albedo"),
+    step,
+    arrays,
+    bytes: buffer.byteLength,
+  };
+}
+
+/** The inverse of a row-major 4x4 affine map (last row 0 0 0 1), row-major. */
+export function invertAffine(m) {
+  const [a, b, c, d, e, f, g, h, i] = [m[0], m[1], m[2], m[4], m[5], m[6], m[8], m[9], m[10]];
+  const A = e * i - f * h;
+  const B = -(d * i - f * g);
+  const C = d * h - e * g;
+  const det = a * A + b * B + c * C;
+  if (!Number.isFinite(det) || Math.abs(det) < 1e-30) throw new FieldError("unit_to_world is not invertible");
+  const inv = [
+    A, -(b * i - c * h), b * f - c * e,
+    B, a * i - c * g, -(a * f - c * d),
+    C, -(a * h - b * g), a * e - b * d,
+  ].map((v) => v / det);
+  const t = [m[3], m[7], m[11]];
+  const out = [];
+  for (let r = 0; r < 3; r++) {
+    const row = inv.slice(3 * r, 3 * r + 3);
+    out.push(...row, -(row[0] * t[0] + row[1] * t[1] + row[2] * t[2]));
+  }
+  out.push(0, 0, 0, 1);
+  return out;
+}
+
+/** A float16 bit pattern as a number. */
+export function halfToFloat(h) {
+  const s = h & 0x8000 ? -1 : 1;
+  const e = (h >> 10) & 0x1f;
+  const f = h & 0x3ff;
+  if (e === 0) return s * f * 2 ** -24;
+  if (e === 31) return f ? NaN : s * Infinity;
+  return s * (1 + f / 1024) * 2 ** (e - 15);
+}
+
+/** Downloads and decodes the field of cache ``cacheId``. Resolves with decodeField's object. */
+export async function fetchField(api, cacheId, { signal } = {}) {
+  const path = `/v1/caches/${encodeURIComponent(cacheId)}/field`;
+  const what = "Downloading the radiance field";
+  const response = await api.request(path, { signal, what });
+  let buffer;
+  try {
+    buffer = await response.arrayBuffer();
+  } catch (err) {
+    if (err && err.name === "AbortError") throw err;
+    throw new FieldError(`${what} failed: the download broke off (${err.message || err})`);
+  }
+  try {
+    return decodeField(buffer);
+  } catch (err) {
+    if (err instanceof FieldError) throw new FieldError(`${what} failed: ${err.message}`);
+    throw err;
+  }
+}

@@ -1,0 +1,232 @@
+// The WebGL2 renderer of a radiance field: 3D textures on the GPU, one draw per frame, and a
+// read-back of an image at a given size for comparisons. Knows nothing of the DOM around it.
+
+import { FRAGMENT, VERTEX } from "./shaders.js";
+import { cross, normalize, sub } from "./camera.js";
+
+/** Why this browser cannot draw the real-time view, or "" when it can. */
+export function webgl2Missing(canvas) {
+  if (typeof WebGL2RenderingContext === "undefined") return "this browser has no WebGL2";
+  return canvas.getContext("webgl2") ? "" : "WebGL2 is disabled or unavailable in this browser";
+}
+
+function compile(gl, type, source) {
+  const s = gl.createShader(type);
+  gl.shaderSource(s, source);
+  gl.compileShader(s);
+  if (!gl.getShaderParameter(s, gl.COMPILE_STATUS) && !gl.isContextLost()) {
+    throw new Error(`the ray-march shader does not compile: ${gl.getShaderInfoLog(s)}`);
+  }
+  return s;
+}
+
+/** Pinhole basis of a scene-spec camera {eye, target, up, fov, width, height} (as the server's). */
+export function cameraBasis(cam) {
+  const forward = normalize(sub(cam.target, cam.eye));
+  const right = normalize(cross(forward, cam.up));
+  const up = cross(right, forward);
+  return { forward, right, up };
+}
+
+export class GLView {
+  /** canvas: the <canvas> to draw on. Throws if WebGL2 is missing. */
+  constructor(canvas) {
+    this.canvas = canvas;
+    const gl = canvas.getContext("webgl2", {
+      alpha: false,
+      depth: false,
+      stencil: false,
+      antialias: false,
+      premultipliedAlpha: false,
+      preserveDrawingBuffer: false,
+      powerPreference: "high-performance",
+    });
+    if (!gl) throw new Error(webgl2Missing(document.createElement("canvas")) || "WebGL2 is unavailable");
+    this.gl = gl;
+    const program = gl.createProgram();
+    gl.attachShader(program, compile(gl, gl.VERTEX_SHADER, VERTEX));
+    gl.attachShader(program, compile(gl, gl.FRAGMENT_SHADER, FRAGMENT));
+    gl.linkProgram(program);
+    if (!gl.getProgramParameter(program, gl.LINK_STATUS) && !gl.isContextLost()) {
+      throw new Error(`the ray-march shader does not link: ${gl.getProgramInfoLog(program)}`);
+    }
+    this.program = program;
+    this.loc = {};
+    const n = gl.getProgramParameter(program, gl.ACTIVE_UNIFORMS);
+    for (let i = 0; i < n; i++) {
+      const name = gl.getActiveUniform(program, i).name;
+      this.loc[name] = gl.getUniformLocation(program, name);
+    }
+    this.vao = gl.createVertexArray();
+    this.textures = null;
+    this.field = null;
+    this.maxSize = gl.getParameter(gl.MAX_3D_TEXTURE_SIZE);
+  }
+
+  /**
+   * Why ``field`` cannot be drawn on this device, or "". ``maxBytes`` caps the texture memory.
+   */
+  tooLarge(field, maxBytes = 1 << 30) {
+    const dims = Object.values(field.arrays).map((a) => a.shape.slice(0, 3));
+    for (const [nz, ny, nx] of dims) {
+      if (Math.max(nx, ny, nz) > this.maxSize) {
+        return `the field (${nx}×${ny}×${nz}) exceeds this device's 3D texture limit of ${this.maxSize}`;
+      }
+    }
+    const bytes = GLView.textureBytes(field);
+    if (bytes > maxBytes) return `the field needs ${(bytes / 2 ** 20).toFixed(0)} MiB of textures`;
+    return "";
+  }
+
+  /** GPU bytes of a field's textures: RG16F density + tau, RGBA16F-padded radiance, R16F majorant. */
+  static textureBytes(field) {
+    const count = (a) => a.shape[0] * a.shape[1] * a.shape[2];
+    const { sigma_t, radiance_ms, majorant } = field.arrays;
+    return 4 * count(sigma_t) + 8 * count(radiance_ms) + 2 * count(majorant);
+  }
+
+  /**
+   * Uploads a decoded field (field.js) and makes it the one drawn; the previous field's
+   * textures are freed only once the new ones exist, so a failed upload keeps the old view.
+   */
+  setField(field) {
+    const gl = this.gl;
+    const { sigma_t, tau_light, radiance_ms, majorant } = field.arrays;
+    // sigma_t and tau_light share one grid: one RG texture, one fetch per march step.
+    const n = sigma_t.data.length;
+    const st = new Uint16Array(2 * n);
+    const s = sigma_t.data;
+    const tau = tau_light.data;
+    for (let i = 0; i < n; i++) {
+      st[2 * i] = s[i];
+      st[2 * i + 1] = tau[i];
+    }
+    const tau1 = Number(tau_light.scale);
+    if (Math.abs(tau1 - 1) > 1e-6) {
+      throw new Error(`tau_light scale ${tau1} is not supported (1 expected)`);
+    }
+    const make = (arr, internal, format, data, filter) => {
+      const [nz, ny, nx] = arr.shape;
+      const t = gl.createTexture();
+      gl.bindTexture(gl.TEXTURE_3D, t);
+      gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
+      gl.texImage3D(gl.TEXTURE_3D, 0, internal, nx, ny, nz, 0, format, gl.HALF_FLOAT, data);
+      gl.texParameteri(gl.TEXTURE_3D, gl.TEXTURE_MIN_FILTER, filter);
+      gl.texParameteri(gl.TEXTURE_3D, gl.TEXTURE_MAG_FILTER, filter);
+      for (const w of [gl.TEXTURE_WRAP_S, gl.TEXTURE_WRAP_T, gl.TEXTURE_WRAP_R]) {
+        gl.texParameteri(gl.TEXTURE_3D, w, gl.CLAMP_TO_EDGE);
+      }
+      return t;
+    };
+    const textures = {
+      densTau: make(sigma_t, gl.RG16F, gl.RG, st, gl.LINEAR),
+      rad: make(radiance_ms, gl.RGB16F, gl.RGB, radiance_ms.data, gl.LINEAR),
+      maj: make(majorant, gl.R16F, gl.RED, majorant.data, gl.NEAREST),
+    };
+    const err = gl.getError();
+    if (err !== gl.NO_ERROR && !gl.isContextLost()) {
+      Object.values(textures).forEach((t) => gl.deleteTexture(t));
+      throw new Error(`the field could not be uploaded to the GPU (WebGL error 0x${err.toString(16)})`);
+    }
+    if (this.textures) Object.values(this.textures).forEach((t) => gl.deleteTexture(t));
+    this.textures = textures;
+    const [nz, ny, nx] = sigma_t.shape;
+    const [bz, by, bx] = majorant.shape;
+    const B = majorant.block;
+    // Keep the numbers the shader needs, not the arrays: the body can be garbage collected.
+    this.field = {
+      worldToUnit: field.worldToUnit,
+      step: field.step,
+      sigmaScale: Number(sigma_t.scale),
+      majScale: Number(majorant.scale),
+      radScale: radiance_ms.scale,
+      direct: field.light.irradiance.map((e) => e / (4 * Math.PI)),
+      albedo: field.albedo,
+      blockCells: [nx / B, ny / B, nz / B],
+      blocks: [bx, by, bz],
+      grid: [nx, ny, nz],
+      radianceGrid: radiance_ms.shape.slice(0, 3).reverse(),
+      textureBytes: GLView.textureBytes(field),
+      radianceKey: field.header.radiance_key,
+    };
+  }
+
+  /**
+   * Draws the field as seen by scene-spec camera ``cam`` into the current framebuffer at
+   * width x height. exposure: stops; stepScale >= 1 lengthens the march step (while moving).
+   */
+  draw(cam, width, height, { exposure = 0, stepScale = 1 } = {}) {
+    const gl = this.gl;
+    const f = this.field;
+    if (!f) return;
+    const { forward, right, up } = cameraBasis(cam);
+    const tanX = Math.tan((cam.fov * Math.PI) / 360);
+    gl.viewport(0, 0, width, height);
+    gl.useProgram(this.program);
+    const L = this.loc;
+    gl.uniform3fv(L.uEye, cam.eye);
+    gl.uniform3fv(L.uForward, forward);
+    gl.uniform3fv(L.uRight, right);
+    gl.uniform3fv(L.uUp, up);
+    gl.uniform2f(L.uTan, tanX, (tanX * height) / width);
+    gl.uniform2f(L.uSize, width, height);
+    gl.uniformMatrix4fv(L.uWorldToUnit, true, f.worldToUnit);
+    gl.uniform1f(L.uStep, f.step * stepScale);
+    gl.uniform1f(L.uSigmaScale, f.sigmaScale);
+    gl.uniform3fv(L.uRadScale, f.radScale);
+    gl.uniform3fv(L.uDirect, f.direct);
+    gl.uniform3fv(L.uAlbedo, f.albedo);
+    gl.uniform1f(L.uGain, 2 ** exposure);
+    gl.uniform3fv(L.uBlockCells, f.blockCells);
+    gl.uniform3iv(L.uBlocks, f.blocks);
+    const units = [
+      ["uDensTau", this.textures.densTau],
+      ["uRad", this.textures.rad],
+      ["uMaj", this.textures.maj],
+    ];
+    units.forEach(([name, tex], i) => {
+      gl.activeTexture(gl.TEXTURE0 + i);
+      gl.bindTexture(gl.TEXTURE_3D, tex);
+      gl.uniform1i(L[name], i);
+    });
+    gl.bindVertexArray(this.vao);
+    gl.drawArrays(gl.TRIANGLES, 0, 3);
+  }
+
+  /** Draws onto the canvas, resizing its drawing buffer to width x height first. */
+  drawToCanvas(cam, width, height, options) {
+    if (this.canvas.width !== width || this.canvas.height !== height) {
+      this.canvas.width = width;
+      this.canvas.height = height;
+    }
+    this.gl.bindFramebuffer(this.gl.FRAMEBUFFER, null);
+    this.draw(cam, width, height, options);
+  }
+
+  /** The field seen by ``cam`` at its width x height (full quality), as top-down ImageData. */
+  readImage(cam, { exposure = 0 } = {}) {
+    const gl = this.gl;
+    const { width, height } = cam;
+    const tex = gl.createTexture();
+    gl.bindTexture(gl.TEXTURE_2D, tex);
+    gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA8, width, height);
+    const fbo = gl.createFramebuffer();
+    gl.bindFramebuffer(gl.FRAMEBUFFER, fbo);
+    gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, tex, 0);
+    try {
+      this.draw(cam, width, height, { exposure, stepScale: 1 });
+      const rows = new Uint8Array(width * height * 4);
+      gl.readPixels(0, 0, width, height, gl.RGBA, gl.UNSIGNED_BYTE, rows);
+      const out = new ImageData(width, height);
+      const stride = width * 4;
+      for (let r = 0; r < height; r++) {
+        out.data.set(rows.subarray((height - 1 - r) * stride, (height - r) * stride), r * stride);
+      }
+      return out;
+    } finally {
+      gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+      gl.deleteFramebuffer(fbo);
+      gl.deleteTexture(tex);
+    }
+  }
+}
