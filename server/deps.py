@@ -10,8 +10,7 @@ from redis import Redis
 from rq import Queue
 
 from cloudgraph.store import VolumeStore
-
-from .settings import Settings
+from cloudgraph_service.settings import Settings
 
 
 def get_settings(request: Request) -> Settings:

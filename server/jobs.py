@@ -6,18 +6,29 @@ import asyncio
 import hashlib
 import json
 import time
+from datetime import UTC, datetime
+from pathlib import Path
 
 from fastapi import HTTPException
 from redis import Redis
-from rq import Queue, Retry
-from rq.exceptions import NoSuchJobError
+from rq import Queue, Retry, Worker
 from rq.job import Job
 from rq.job import JobStatus as RQStatus
 
-from worker.jobs import cancel_key, end_dependents
+from cloudgraph_service.protocol import (
+    CANCEL_TTL_S,
+    FRAME_GLOB,
+    HEARTBEAT_GRACE_S,
+    KILL_GRACE_S,
+    RESULT_TTL_S,
+    cancel_key,
+    end_dependents,
+    end_if_orphaned,
+)
+from cloudgraph_service.protocol import fetch as fetch  # re-exported for the routes
+from cloudgraph_service.settings import Settings
 
 from .schemas import JobPublic, JobStatus
-from .settings import Settings
 
 _STATUS = {
     RQStatus.QUEUED: JobStatus.queued,
@@ -69,47 +80,48 @@ def enqueue(
     meta: dict | None = None,
     at_front: bool = False,
 ) -> Job:
-    """Enqueues with the service's timeout and retries; ``meta`` describes the job to clients."""
-    return queue.enqueue(
+    """Enqueues with the service's budget; ``meta`` describes the job to clients.
+
+    ``retry`` counts the reruns a job gets when its worker dies under it; a job that fails with
+    an error is never rerun (the worker sets its retries to 0: the error would repeat). A job
+    enqueued after what it waits on has already failed is ended at once.
+    """
+    job = queue.enqueue(
         func,
         *args,
         job_id=job_id,
         depends_on=depends_on,
         at_front=at_front,
         job_timeout=settings.JOB_TIMEOUT_S,
-        retry=Retry(max=settings.JOB_RETRIES),
-        result_ttl=7 * 24 * 3600,
-        failure_ttl=7 * 24 * 3600,
+        retry=Retry(max=settings.JOB_RETRIES) if settings.JOB_RETRIES > 0 else None,
+        result_ttl=RESULT_TTL_S,
+        failure_ttl=RESULT_TTL_S,
         meta={"kind": kind, "stage": "queued", "fraction": 0.0, **(meta or {})},
     )
-
-
-def fetch(redis: Redis, job_id: str) -> Job | None:
-    try:
-        return Job.fetch(job_id, connection=redis)
-    except NoSuchJobError:
-        return None
+    if depends_on is not None:
+        end_if_orphaned(job)
+    return job
 
 
 def status_of(job: Job) -> JobStatus:
     if job.meta.get("canceled"):
         return JobStatus.canceled
-    if job.meta.get("failed"):  # what it waited on failed (worker.jobs.end_dependents)
+    if job.meta.get("failed"):  # what it waited on failed (protocol.end_dependents)
         return JobStatus.failed
     return _STATUS.get(job.get_status(refresh=False), JobStatus.queued)
 
 
 def describe(job: Job) -> JobPublic:
-    """What a client sees of a job (``result_url`` when finished)."""
+    """What a client sees of a job (``result_url`` when finished). Errors come from the job's
+    meta, written for people; never from RQ's traceback."""
     job.refresh()
+    if job.get_status(refresh=False) == RQStatus.DEFERRED and end_if_orphaned(job):
+        job.refresh()
     st = status_of(job)
     meta = job.meta
-    error = None
-    if meta.get("error"):  # it waited on a job that failed or was cancelled
-        error = meta["error"]
-    elif st == JobStatus.failed:
-        exc = job.latest_result().exc_string if job.latest_result() else (job.exc_info or "")
-        error = _last_line(exc or "failed")
+    error = meta.get("error")
+    if st == JobStatus.failed and not error:  # e.g. found abandoned by RQ: no message of ours
+        error = f"job {job.id} failed; the service log has the details under that id"
     fraction = float(meta.get("fraction", 0.0))
     result = job.return_value() if st == JobStatus.finished else None
     if st == JobStatus.finished:
@@ -125,17 +137,15 @@ def describe(job: Job) -> JobPublic:
         fraction=fraction,
         result_url=meta.get("result_url") if st == JobStatus.finished else None,
         result=_public_result(result),
-        error=error,
+        error=error if st in (JobStatus.failed, JobStatus.canceled) else None,
         created_at=created,
     )
 
 
 def animation_fraction(job: Job) -> float:
     """Frames done over frames asked for, 90 % of the job; encoding is the rest."""
-    from pathlib import Path
-
     out, n = Path(job.meta.get("out_dir", "")), int(job.meta.get("frames", 1))
-    done = len(list(out.glob("frame_*.png"))) if out.is_dir() else 0
+    done = len(list(out.glob(FRAME_GLOB))) if out.is_dir() else 0
     return 0.9 * done / max(n, 1)
 
 
@@ -143,11 +153,6 @@ def _public_result(result):
     if not isinstance(result, dict):
         return None
     return {k: v for k, v in result.items() if k not in ("path", "video")}
-
-
-def _last_line(text: str) -> str:
-    lines = [ln for ln in str(text).strip().splitlines() if ln.strip()]
-    return lines[-1] if lines else "failed"
 
 
 def cancel(redis: Redis, job: Job) -> None:
@@ -158,7 +163,7 @@ def cancel(redis: Redis, job: Job) -> None:
         j = fetch(redis, jid)
         if j is None:
             continue
-        redis.set(cancel_key(jid), 1, ex=24 * 3600)
+        redis.set(cancel_key(jid), 1, ex=CANCEL_TTL_S)
         j.meta["canceled"] = True
         j.save_meta()
         if j.get_status() in (RQStatus.QUEUED, RQStatus.DEFERRED, RQStatus.SCHEDULED):
@@ -168,6 +173,31 @@ def cancel(redis: Redis, job: Job) -> None:
                 pass
             else:  # a running one's are ended by its worker
                 end_dependents(j, f"it waited on job {jid}, which was cancelled", failed=False)
+
+
+def worker_health(queue: Queue, settings: Settings) -> tuple[int, int]:
+    """(live, stuck): workers that have beaten within HEARTBEAT_S + grace, and those of them
+    whose job has run past its budget (its supervisor should have stopped it by now).
+
+    RQ's worker registry keeps a killed worker until another worker's maintenance removes it, so
+    liveness is judged by the heartbeat's age, not by registration.
+    """
+    limit = settings.HEARTBEAT_S + HEARTBEAT_GRACE_S
+    now = datetime.now(UTC)
+    live = [
+        w
+        for w in Worker.all(queue=queue)
+        if w.last_heartbeat is not None and (now - w.last_heartbeat).total_seconds() < limit
+    ]
+    stuck = set()
+    for jid in queue.started_job_registry.get_job_ids(cleanup=False):
+        job = fetch(queue.connection, jid)
+        if job is None or job.started_at is None:
+            continue
+        ran = (now - job.started_at.replace(tzinfo=UTC)).total_seconds()
+        if ran > (job.timeout or settings.JOB_TIMEOUT_S) + KILL_GRACE_S:
+            stuck.add(job.worker_name)
+    return len(live), sum(1 for w in live if w.name in stuck)
 
 
 async def await_job(job: Job, timeout: float, request) -> JobStatus:

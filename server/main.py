@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from pathlib import Path
 
@@ -16,10 +17,12 @@ from rq import Queue
 
 from cloudgraph.errors import CloudgraphError
 from cloudgraph.store import VolumeStore
+from cloudgraph_service.errors import scrub
+from cloudgraph_service.settings import Settings
 
 from .deps import require_key
+from .errors import BodyTooLarge, InputError
 from .routes import animations, caches, health, jobs, renders, volumes
-from .settings import Settings
 
 log = logging.getLogger("cloudgraph.api")
 WEB = Path(__file__).resolve().parents[1] / "web"
@@ -63,6 +66,49 @@ class CountRequests:
             ).inc()
 
 
+class LimitBody:
+    """Refuses request bodies over their limit (413) before they are parsed: ``MAX_UPLOAD_MB``
+    for volume uploads, ``MAX_BODY_KB`` for JSON. A declared Content-Length over the limit is
+    answered at once (the body is read and dropped, up to ``DRAIN``, so the client sees the
+    answer); a chunked body is counted as it arrives."""
+
+    DRAIN = 256 * 2**20
+    UPLOAD_SLACK = 2**20  # multipart boundaries and headers around the file
+
+    def __init__(self, app, settings: Settings):
+        self.app, self.settings = app, settings
+
+    def limit(self, scope) -> tuple[int, str]:
+        if scope["path"].rstrip("/") == "/v1/volumes":
+            mb = self.settings.MAX_UPLOAD_MB
+            return mb * 2**20 + self.UPLOAD_SLACK, f"upload is over the limit of {mb} MiB"
+        kb = self.settings.MAX_BODY_KB
+        return kb * 2**10, f"the request body is over the limit of {kb} KiB (MAX_BODY_KB)"
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http" or scope["method"] in ("GET", "HEAD", "OPTIONS", "DELETE"):
+            return await self.app(scope, receive, send)
+        limit, message = self.limit(scope)
+        declared = dict(scope["headers"]).get(b"content-length", b"").decode()
+        if declared.isdigit() and int(declared) > limit:
+            if int(declared) <= self.DRAIN:
+                while (await receive()).get("more_body"):
+                    pass
+            response = JSONResponse({"detail": message}, status_code=413, headers={"Connection": "close"})
+            return await response(scope, receive, send)
+        received = 0
+
+        async def counted():
+            nonlocal received
+            msg = await receive()
+            received += len(msg.get("body", b""))
+            if received > limit:
+                raise BodyTooLarge(message)
+            return msg
+
+        await self.app(scope, counted, send)
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings.from_env()
     app = FastAPI(
@@ -74,14 +120,24 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.redis = Redis.from_url(settings.REDIS_URL, socket_timeout=10)
     app.state.queue = Queue(settings.QUEUE, connection=app.state.redis)
     app.state.volumes = VolumeStore(settings.volumes_dir)
+    app.state.upload_slots = asyncio.Semaphore(2)  # volume checks at once (each a child process)
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(request: Request, err: RequestValidationError):
         return JSONResponse({"detail": _message(err)}, status_code=422)
 
+    @app.exception_handler(InputError)
+    async def input_error(request: Request, err: InputError):
+        return JSONResponse({"detail": str(err)}, status_code=422)
+
     @app.exception_handler(CloudgraphError)
     async def domain_error(request: Request, err: CloudgraphError):
-        return JSONResponse({"detail": str(err)}, status_code=422)
+        return JSONResponse({"detail": scrub(str(err))}, status_code=422)
+
+    @app.exception_handler(Exception)
+    async def internal_error(request: Request, err: Exception):
+        log.error("%s %s failed", request.method, request.url.path, exc_info=err)
+        return JSONResponse({"detail": "internal error; the service log has the details"}, status_code=500)
 
     @app.exception_handler(RedisConnectionError)
     @app.exception_handler(RedisTimeoutError)
@@ -93,6 +149,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             headers={"Retry-After": "5"},
         )
 
+    app.add_middleware(LimitBody, settings=settings)
     app.add_middleware(CountRequests)
 
     v1 = APIRouter(prefix="/v1", dependencies=[Depends(require_key)])

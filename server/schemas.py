@@ -7,9 +7,13 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from cloudgraph.options import ESTIMATORS, INTEGRATORS, QUALITIES
 from cloudgraph.scene import CameraSpec, LightSpec, MediumSpec, Scene, VolumeSpec
 
-Quality = Literal["draft", "default", "high"]
+# The API's enums come from the engine's tuples (one source of truth).
+Quality = Literal[QUALITIES]
+Integrator = Literal[INTEGRATORS]
+Estimator = Literal[ESTIMATORS]
 
 
 class _Body(BaseModel):
@@ -28,7 +32,8 @@ class CacheCreate(_Body):
 
 class RenderCreate(_Body):
     scene: Scene
-    integrator: Literal["graph", "volpath"] = "graph"
+    integrator: Integrator = "graph"
+    estimator: Estimator = Field("gather", description="the graph integrator's camera stage")
     format: Literal["png", "exr"] = "png"
     quality: Quality = "default"
     exposure: float = Field(0.0, ge=-20, le=20, description="PNG exposure in stops")
@@ -48,7 +53,8 @@ class AnimationCreate(_Body):
     orbit: Orbit | None = None
     frames: int = Field(24, ge=1)
     fps: float = Field(24.0, gt=0, le=120)
-    integrator: Literal["graph", "volpath"] = "graph"
+    integrator: Integrator = "graph"
+    estimator: Estimator = "gather"
     quality: Quality = "default"
     exposure: float = Field(0.0, ge=-20, le=20)
 

@@ -1,89 +1,120 @@
-"""``python -m worker``: an RQ worker that runs jobs in-process and keeps its caches warm."""
+"""``python -m worker``: a supervisor that keeps one worker process running and holds every job
+to its budget.
+
+The worker process runs jobs in-process, so its caches and compiled kernels stay warm. Native
+code (a Dr.Jit kernel, a long sparse product) cannot be interrupted from inside, so this
+supervisor watches from outside: a job still running ``KILL_GRACE_S`` past its budget has its
+worker process killed, and is failed for good (no restart brings it back); a worker process that
+dies on its own has its job put back, up to ``JOB_RETRIES`` times. Either way a fresh worker
+process then takes the next job. SIGTERM or SIGINT stops both.
+"""
 
 from __future__ import annotations
 
 import logging
-import threading
+import multiprocessing as mp
+import os
+import signal
+import socket
+import time
+import uuid
 
 from redis import Redis
-from rq import Queue, SimpleWorker
-from rq.job import JobStatus
+from rq import Queue
 
-from server.settings import Settings
+from cloudgraph_service.protocol import (
+    KILL_GRACE_S,
+    fail_for_good,
+    fetch,
+    requeue_after_death,
+    sweep_deferred,
+)
+from cloudgraph_service.settings import Settings
 
-from .jobs import cancel_key, end_dependents
+from .process import Running, run
 
-log = logging.getLogger("cloudgraph.worker")
+log = logging.getLogger("cloudgraph.supervisor")
+POLL_S = 0.25
+SWEEP_S = 5.0
 
 
-class CloudgraphWorker(SimpleWorker):
-    """Runs jobs in this process (no fork per job: warm caches and compiled kernels stay) and
-    keeps a short heartbeat from a thread while a job runs, so that a killed worker's job is
-    found abandoned within seconds and retried by another worker."""
+class Supervisor:
+    def __init__(self, settings: Settings):
+        self.settings = settings
+        self.ctx = mp.get_context("spawn")  # a fresh interpreter: Mitsuba is loaded there only
+        self.redis = Redis.from_url(settings.REDIS_URL)
+        self.queue = Queue(settings.QUEUE, connection=self.redis)
+        self.running = Running(self.ctx)
+        self.child = None
+        self.stopping = False
 
-    heartbeat_s = 30
+    def start_child(self) -> None:
+        self.running.clear()
+        name = f"{socket.gethostname()}.{os.getpid()}.{uuid.uuid4().hex[:6]}"
+        self.child = self.ctx.Process(target=run, args=(self.running, name), name="cloudgraph-worker")
+        self.child.start()
+        log.info("worker process %s started (%s)", self.child.pid, name)
 
-    def get_heartbeat_ttl(self, job, working_time: float = 0.0) -> int:
-        return self.heartbeat_s + 15
+    def stop(self, *_):
+        self.stopping = True
 
-    def execute_job(self, job, queue):
-        execution = self.prepare_execution(job)
-        stop = threading.Event()
+    def kill_child(self) -> None:
+        self.child.kill()
+        self.child.join(10)
 
-        def beat():
-            while not stop.wait(self.heartbeat_s / 3):
+    def check(self) -> None:
+        """One look at the worker process: past its budget, or dead."""
+        job_id, deadline, budget = self.running.current()
+        if not self.child.is_alive():
+            code = self.child.exitcode
+            if job_id:
+                log.error("worker process %s died (exit %s) running job %s", self.child.pid, code, job_id)
+                job = fetch(self.redis, job_id)
+                if job is not None and requeue_after_death(job):
+                    log.info("job %s put back in the queue (%s retries left)", job_id, job.retries_left)
+            else:
+                log.error("worker process %s ended (exit %s)", self.child.pid, code)
+            self.start_child()
+            return
+        if job_id and deadline and time.time() > deadline + KILL_GRACE_S:
+            log.error(
+                "job %s ran past its budget of %.0f s: killing worker process %s",
+                job_id,
+                budget,
+                self.child.pid,
+            )
+            self.kill_child()
+            job = fetch(self.redis, job_id)
+            if job is not None:
+                fail_for_good(job, f"stopped: it ran past its time budget of {budget:.0f} s")
+            self.start_child()
+
+    def loop(self) -> None:
+        signal.signal(signal.SIGTERM, self.stop)
+        signal.signal(signal.SIGINT, self.stop)
+        self.start_child()
+        last_sweep = 0.0
+        try:
+            while not self.stopping:
                 try:
-                    self.maintain_heartbeats(job, execution)
-                except Exception:  # a missed beat is retried at the next one
-                    log.exception("heartbeat failed")
-
-        t = threading.Thread(target=beat, daemon=True)
-        t.start()
-        try:
-            self.perform_job(job, queue, execution)
+                    self.check()
+                    if time.monotonic() - last_sweep > SWEEP_S:
+                        last_sweep = time.monotonic()
+                        sweep_deferred(self.queue)
+                except Exception:  # Redis away for a moment: look again at the next poll
+                    log.exception("supervisor check failed")
+                time.sleep(POLL_S)
         finally:
-            stop.set()
-            t.join()
-        self.set_state("idle")
-
-    def handle_job_failure(self, job, queue, started_job_registry=None, exc_string="", execution=None):
-        """A job that a client cancelled ends as stopped (the API says canceled), never retried:
-        RQ would otherwise retry its JobCancelled like any other error."""
-        cancelled = bool(self.connection.exists(cancel_key(job.id)))
-        if cancelled:
-            self._stopped_job_id = job.id
-        super().handle_job_failure(
-            job, queue, started_job_registry=started_job_registry, exc_string=exc_string, execution=execution
-        )
-        try:
-            if job.get_status() in (JobStatus.FAILED, JobStatus.STOPPED):  # not retried: the end
-                lines = [ln for ln in exc_string.strip().splitlines() if ln.strip()] or ["an error"]
-                why = "was cancelled" if cancelled else f"failed: {lines[-1]}"
-                end_dependents(job, f"it waited on job {job.id}, which {why}", failed=not cancelled)
-        except Exception:  # never let this end the worker's loop
-            log.exception("could not end the jobs waiting on %s", job.id)
+            if self.child is not None and self.child.is_alive():
+                self.child.terminate()  # RQ's warm shutdown: the current job is put back
+                self.child.join(10)
+                if self.child.is_alive():
+                    self.kill_child()
 
 
 def main() -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    settings = Settings.from_env()
-    from cloudgraph.mitsuba_scene import set_variant
-
-    variant = set_variant()
-    import cloudgraph.integrators.graph  # noqa: F401  (registers the integrator for this variant)
-
-    log.info("worker: variant %s, data %s, redis %s", variant, settings.DATA_DIR, settings.REDIS_URL)
-    conn = Redis.from_url(settings.REDIS_URL)
-    CloudgraphWorker.heartbeat_s = settings.HEARTBEAT_S
-    # A short worker_ttl makes the blocking dequeue return often, so that maintenance (which
-    # retries the jobs of dead workers) runs every HEARTBEAT_S seconds, not every 7 minutes.
-    worker = CloudgraphWorker(
-        [Queue(settings.QUEUE, connection=conn)],
-        connection=conn,
-        worker_ttl=settings.HEARTBEAT_S + 15,
-        maintenance_interval=settings.HEARTBEAT_S,
-    )
-    worker.work(with_scheduler=False)
+    Supervisor(Settings.from_env()).loop()
 
 
 if __name__ == "__main__":

@@ -12,6 +12,7 @@ from rq import get_current_job
 
 from cloudgraph.image import png_bytes, write_exr
 from cloudgraph.scene import parse_scene
+from cloudgraph_service.protocol import FRAME_FFMPEG, FRAME_FILE, VIDEO_FILE, cancel_key
 
 from .state import state
 
@@ -20,35 +21,6 @@ log = logging.getLogger(__name__)
 
 class JobCancelled(Exception):
     """The job was cancelled by a client (checked at every progress report)."""
-
-
-def cancel_key(job_id: str) -> str:
-    return f"cloudgraph:cancel:{job_id}"
-
-
-def end_dependents(job, why: str, failed: bool) -> None:
-    """Ends the jobs that wait on ``job`` (and those that wait on them) with ``why`` as their
-    error, as failed or canceled. Once ``job`` has failed or been cancelled, RQ would leave them
-    deferred for ever: waiting, to clients, and taking room in the queue."""
-    from rq.exceptions import NoSuchJobError
-    from rq.job import Job, JobStatus
-
-    todo, seen = list(job.dependent_ids), set()
-    while todo:
-        jid = todo.pop()
-        if jid in seen:
-            continue
-        seen.add(jid)
-        try:
-            dep = Job.fetch(jid, connection=job.connection)
-        except NoSuchJobError:
-            continue
-        if dep.get_status() != JobStatus.DEFERRED:
-            continue
-        dep.meta.update({"error": why, "failed" if failed else "canceled": True})
-        dep.save_meta()
-        dep.cancel()
-        todo.extend(dep.dependent_ids)
 
 
 def report(stage: str, fraction: float) -> None:
@@ -95,8 +67,11 @@ def precompute_job(scene: dict, quality: str) -> dict:
     return {"keys": cache.keys, "stats": cache.stats}
 
 
-def render_image(scene: dict, integrator: str, quality: str) -> tuple[np.ndarray, float]:
-    """(image, seconds) for a scene with the graph or volpath integrator."""
+def render_image(
+    scene: dict, integrator: str, quality: str, estimator: str = "gather"
+) -> tuple[np.ndarray, float]:
+    """(image, seconds) for a scene with the graph or volpath integrator; ``estimator`` is the
+    graph integrator's camera stage (one loaded renderer serves them all)."""
     from cloudgraph.render import render_volpath
 
     sc = parse_scene(scene)
@@ -105,7 +80,7 @@ def render_image(scene: dict, integrator: str, quality: str) -> tuple[np.ndarray
         renderer = _renderer(sc, volume, quality, lambda s, f: report(s, 0.9 * f))
         report("render", 0.9)
         t0 = time.perf_counter()
-        image = renderer.render(sc.camera, sc.render.spp, sc.render.seed)
+        image = renderer.render(sc.camera, sc.render.spp, sc.render.seed, estimator=estimator)
     else:
         report("render", 0.0)
         t0 = time.perf_counter()
@@ -113,9 +88,17 @@ def render_image(scene: dict, integrator: str, quality: str) -> tuple[np.ndarray
     return image, time.perf_counter() - t0
 
 
-def render_job(scene: dict, integrator: str, fmt: str, quality: str, exposure: float, out: str) -> dict:
+def render_job(
+    scene: dict,
+    integrator: str,
+    fmt: str,
+    quality: str,
+    exposure: float,
+    out: str,
+    estimator: str = "gather",
+) -> dict:
     """Renders one image to ``out`` (png or exr)."""
-    image, seconds = render_image(scene, integrator, quality)
+    image, seconds = render_image(scene, integrator, quality, estimator)
     path = Path(out)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp" + path.suffix)
@@ -129,16 +112,23 @@ def render_job(scene: dict, integrator: str, fmt: str, quality: str, exposure: f
 
 
 def frames_job(
-    scenes: list[dict], first: int, integrator: str, quality: str, exposure: float, out_dir: str
+    scenes: list[dict],
+    first: int,
+    integrator: str,
+    quality: str,
+    exposure: float,
+    out_dir: str,
+    estimator: str = "gather",
 ) -> dict:
-    """Renders a run of animation frames (frame_%05d.png), one Python call per frame."""
+    """Renders a run of animation frames (``FRAME_FILE``), one Python call per frame."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     for i, scene in enumerate(scenes):  # a loop over frames, each a whole vectorised render
-        image, _ = render_image(scene, integrator, quality)
-        tmp = out / f".frame_{first + i:05d}.png.tmp"
+        image, _ = render_image(scene, integrator, quality, estimator)
+        name = FRAME_FILE.format(first + i)
+        tmp = out / f".{name}.tmp"
         tmp.write_bytes(png_bytes(image, exposure))
-        tmp.replace(out / f"frame_{first + i:05d}.png")
+        tmp.replace(out / name)
         report("frames", (i + 1) / len(scenes))
     return {"frames": len(scenes), "first": first}
 
@@ -148,7 +138,7 @@ def encode_job(out_dir: str, fps: float, n_frames: int) -> dict:
     import imageio_ffmpeg
 
     out = Path(out_dir)
-    missing = [i for i in range(n_frames) if not (out / f"frame_{i:05d}.png").is_file()]
+    missing = [i for i in range(n_frames) if not (out / FRAME_FILE.format(i)).is_file()]
     if missing:
         raise RuntimeError(f"{len(missing)} frames are missing, first {missing[0]}")
     report("encode", 0.0)
@@ -161,7 +151,7 @@ def encode_job(out_dir: str, fps: float, n_frames: int) -> dict:
         "-framerate",
         str(fps),
         "-i",
-        str(out / "frame_%05d.png"),
+        str(out / FRAME_FFMPEG),
         "-c:v",
         "libx264",
         "-pix_fmt",
@@ -173,6 +163,6 @@ def encode_job(out_dir: str, fps: float, n_frames: int) -> dict:
         str(tmp),
     ]
     subprocess.run(cmd, check=True, capture_output=True, timeout=600)
-    tmp.replace(out / "video.mp4")
+    tmp.replace(out / VIDEO_FILE)
     report("done", 1.0)
-    return {"video": str(out / "video.mp4"), "frames": n_frames, "fps": fps}
+    return {"video": str(out / VIDEO_FILE), "frames": n_frames, "fps": fps}

@@ -11,7 +11,7 @@ from cloudgraph.errors import SceneError
 from cloudgraph.scene import Scene
 from cloudgraph.store import VolumeStore
 from cloudgraph.volume import Volume, load_volume
-from server.settings import Settings
+from cloudgraph_service.settings import Settings
 
 
 class LRU:

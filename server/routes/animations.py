@@ -10,11 +10,22 @@ from fastapi import APIRouter, HTTPException
 from fastapi.responses import FileResponse, JSONResponse
 
 from cloudgraph.scene import CameraSpec
+from cloudgraph_service.errors import shown
+from cloudgraph_service.protocol import (
+    ENCODE_JOB,
+    FRAME_FILE,
+    FRAME_GLOB,
+    FRAMES_JOB,
+    VIDEO_FILE,
+    animation_dir,
+)
 
 from ..deps import QueueDep, RedisDep, SettingsDep, VolumesDep
+from ..errors import InputError
 from ..jobs import check_capacity, describe, enqueue, fetch, status_of
 from ..schemas import AnimationCreate, JobStatus
-from .renders import check_scene, precompute_for
+from ..validation import MAX_COORD, MIN_RADIUS, check_camera, check_finite, check_scene
+from .renders import precompute_for
 
 router = APIRouter(prefix="/animations", tags=["animations"])
 FRAMES_PER_JOB = 4
@@ -70,15 +81,34 @@ def camera_path(body: AnimationCreate) -> list[CameraSpec]:
     ]
 
 
+def check_animation(body: AnimationCreate, settings, volumes) -> None:
+    """The scene, the frame count, and every keyframe under the scene camera's limits (all of
+    one image size: the frames make one video), or an orbit of bounded radius."""
+    check_finite(body.model_dump())
+    if body.frames > settings.MAX_FRAMES:
+        raise InputError("frames", f"{body.frames} is over the limit of {settings.MAX_FRAMES}")
+    check_scene(body.scene, settings, volumes)
+    for i, cam in enumerate(body.keyframes or []):
+        check_camera(cam, settings, f"keyframes[{i}]")
+        first = body.keyframes[0]
+        if (cam.width, cam.height) != (first.width, first.height):
+            raise InputError(
+                f"keyframes[{i}]",
+                f"image {cam.width}x{cam.height} differs from keyframes[0]'s {first.width}x{first.height}; "
+                "the frames of one video share a size",
+            )
+    radius = body.orbit.radius if body.orbit is not None else None
+    if radius is not None and not MIN_RADIUS <= radius <= MAX_COORD:
+        raise InputError("orbit.radius", f"must be within [{MIN_RADIUS:g}, {MAX_COORD:g}], got {radius:g}")
+
+
 @router.post("", status_code=202)
 def create_animation(
     body: AnimationCreate, redis: RedisDep, queue: QueueDep, settings: SettingsDep, volumes: VolumesDep
 ):
     """Renders the frames as batch jobs across the workers, then encodes an MP4."""
     scene = body.scene
-    if body.frames > settings.MAX_FRAMES:
-        raise HTTPException(422, f"frames {body.frames} is over the limit of {settings.MAX_FRAMES}")
-    check_scene(scene, settings, volumes)
+    check_animation(body, settings, volumes)
     n_jobs = -(-body.frames // FRAMES_PER_JOB)
     check_capacity(queue, settings, extra=n_jobs + 1)
     pre = (
@@ -88,20 +118,21 @@ def create_animation(
     )
     depends = pre if pre is not None and status_of(pre) != JobStatus.finished else None
     anim_id = f"anim-{uuid.uuid4().hex}"
-    out_dir = settings.outputs_dir / "animations" / anim_id
+    out_dir = animation_dir(settings.outputs_dir, anim_id)
     scenes = [scene.model_copy(update={"camera": c}).model_dump() for c in camera_path(body)]
     children = []
     for first in range(0, body.frames, FRAMES_PER_JOB):
         j = enqueue(
             queue,
             settings,
-            "worker.jobs.frames_job",
+            FRAMES_JOB,
             scenes[first : first + FRAMES_PER_JOB],
             first,
             body.integrator,
             body.quality,
             body.exposure,
             str(out_dir),
+            body.estimator,
             kind="frames",
             depends_on=depends,
             meta={"animation": anim_id},
@@ -110,7 +141,7 @@ def create_animation(
     job = enqueue(
         queue,
         settings,
-        "worker.jobs.encode_job",
+        ENCODE_JOB,
         str(out_dir),
         body.fps,
         body.frames,
@@ -132,7 +163,7 @@ def create_animation(
 def _anim(redis, anim_id: str):
     job = fetch(redis, anim_id)
     if job is None or job.meta.get("kind") != "animation":
-        raise HTTPException(404, f"no animation {anim_id!r}")
+        raise HTTPException(404, f"no animation {shown(anim_id)}")
     return job
 
 
@@ -142,9 +173,7 @@ def get_animation(anim_id: str, redis: RedisDep) -> dict:
     d = describe(job).model_dump(mode="json")
 
     out = Path(job.meta["out_dir"])
-    d["frames_done"] = (
-        sorted(int(p.stem.split("_")[1]) for p in out.glob("frame_*.png")) if out.is_dir() else []
-    )
+    d["frames_done"] = sorted(int(p.stem.split("_")[1]) for p in out.glob(FRAME_GLOB)) if out.is_dir() else []
     d["frames"] = job.meta["frames"]
     return d
 
@@ -156,7 +185,7 @@ def get_video(anim_id: str, redis: RedisDep):
         raise HTTPException(409, f"animation {anim_id} is {status_of(job).value}, not finished")
 
     return FileResponse(
-        Path(job.meta["out_dir"]) / "video.mp4", media_type="video/mp4", filename=f"{anim_id}.mp4"
+        Path(job.meta["out_dir"]) / VIDEO_FILE, media_type="video/mp4", filename=f"{anim_id}.mp4"
     )
 
 
@@ -164,7 +193,7 @@ def get_video(anim_id: str, redis: RedisDep):
 def get_frame(anim_id: str, index: int, redis: RedisDep):
     job = _anim(redis, anim_id)
 
-    p = Path(job.meta["out_dir"]) / f"frame_{index:05d}.png"
+    p = Path(job.meta["out_dir"]) / FRAME_FILE.format(index)
     if not 0 <= index < job.meta["frames"]:
         raise HTTPException(404, f"frame {index} is outside 0..{job.meta['frames'] - 1}")
     if not p.is_file():

@@ -1,26 +1,33 @@
-"""/v1/caches: start or find the precompute of a radiance cache (idempotent)."""
+"""/v1/caches: start or find the precompute of a radiance cache (idempotent); its radiance field."""
 
 from __future__ import annotations
 
-from fastapi import APIRouter, HTTPException
-from fastapi.responses import JSONResponse
+import re
+
+from fastapi import APIRouter, HTTPException, Request
+from fastapi.responses import FileResponse, JSONResponse, Response
 from rq.job import Job
 
-from worker.jobs import cancel_key
+from cloudgraph.cache import CacheStore
+from cloudgraph_service.errors import shown
+from cloudgraph_service.protocol import LOCK_S, PRECOMPUTE_JOB, cancel_key, lock_key
 
 from ..deps import QueueDep, RedisDep, SettingsDep, VolumesDep
 from ..jobs import cache_id, check_capacity, describe, enqueue, fetch, status_of
 from ..schemas import CacheCreate, JobStatus
+from ..validation import check_cache_parts, check_finite
 
 router = APIRouter(prefix="/caches", tags=["caches"])
+CACHE_ID = re.compile(r"[0-9a-f]{32}")
+#: A field is content-addressed by its radiance key: it never changes under its URL.
+IMMUTABLE = "public, max-age=31536000, immutable"
 
 
-def ensure_cache(body: CacheCreate, redis, queue, settings, volumes) -> tuple[str, Job]:
-    """The precompute job of a cache, enqueued once: an existing live or finished job is reused."""
-    if body.volume.id is None:
-        raise HTTPException(422, "volume.id is required: upload the volume with POST /v1/volumes first")
-    if volumes.info(body.volume.id) is None:
-        raise HTTPException(404, f"no volume with id {body.volume.id!r}; upload it with POST /v1/volumes")
+def ensure_cache(body: CacheCreate, redis, queue, settings, volumes, prefix: str = "") -> tuple[str, Job]:
+    """The precompute job of a cache, enqueued once: an existing live or finished job is reused.
+    ``prefix`` names the fields as the request has them (``scene.`` for renders)."""
+    check_finite(body.model_dump())
+    check_cache_parts(body.volume, body.medium, body.light, body.max_depth, settings, volumes, prefix)
     cid = cache_id(
         body.volume.model_dump(),
         body.medium.model_dump(),
@@ -30,7 +37,7 @@ def ensure_cache(body: CacheCreate, redis, queue, settings, volumes) -> tuple[st
     )
     job_id = f"cache-{cid}"
     # One request at a time per cache: two at once would both enqueue it, and it would run twice.
-    with redis.lock(f"cloudgraph:lock:{job_id}", timeout=30, blocking_timeout=30):
+    with redis.lock(lock_key(job_id), timeout=LOCK_S, blocking_timeout=LOCK_S):
         job = fetch(redis, job_id)
         if job is not None and status_of(job) not in (JobStatus.failed, JobStatus.canceled):
             return cid, job
@@ -48,7 +55,7 @@ def ensure_cache(body: CacheCreate, redis, queue, settings, volumes) -> tuple[st
         job = enqueue(
             queue,
             settings,
-            "worker.jobs.precompute_job",
+            PRECOMPUTE_JOB,
             scene,
             body.quality,
             job_id=job_id,
@@ -72,6 +79,13 @@ def cache_body(cid: str, job: Job) -> dict:
     }
 
 
+def _cache_job(redis, cid: str) -> Job:
+    job = fetch(redis, f"cache-{cid}") if CACHE_ID.fullmatch(cid) else None
+    if job is None:
+        raise HTTPException(404, f"no cache with id {shown(cid)}; start one with POST /v1/caches")
+    return job
+
+
 @router.post("")
 def create_cache(
     body: CacheCreate, redis: RedisDep, queue: QueueDep, settings: SettingsDep, volumes: VolumesDep
@@ -86,7 +100,29 @@ def create_cache(
 
 @router.get("/{cid}")
 def get_cache(cid: str, redis: RedisDep) -> dict:
-    job = fetch(redis, f"cache-{cid}")
-    if job is None:
-        raise HTTPException(404, f"no cache with id {cid!r}; start one with POST /v1/caches")
-    return cache_body(cid, job)
+    return cache_body(cid, _cache_job(redis, cid))
+
+
+@router.get("/{cid}/field")
+def get_field(cid: str, request: Request, redis: RedisDep, settings: SettingsDep):
+    """The cache's radiance field (api.md, "The radiance field"): gzip-compressed bytes sent as
+    they are stored, with ``Content-Encoding: gzip``; ETag is the radiance key, cached for ever."""
+    job = _cache_job(redis, cid)
+    st = status_of(job)
+    if st != JobStatus.finished:
+        raise HTTPException(409, f"cache {cid} is {st.value}, not finished; its field comes with it")
+    key = ((job.return_value() or {}).get("keys") or {}).get("radiance_key")
+    path = CacheStore(settings.cache_dir).field_path(key) if key else None
+    if path is None or not path.is_file():
+        raise HTTPException(
+            410, f"the field of cache {cid} is gone; ask for the cache again (POST /v1/caches)"
+        )
+    headers = {"ETag": f'"{key}"', "Cache-Control": IMMUTABLE}
+    wanted = {t.strip().removeprefix("W/") for t in request.headers.get("if-none-match", "").split(",")}
+    if headers["ETag"] in wanted or "*" in wanted:
+        return Response(status_code=304, headers=headers)
+    return FileResponse(
+        path,
+        media_type="application/octet-stream",
+        headers={**headers, "Content-Encoding": "gzip"},
+    )

@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-from datetime import UTC, datetime
-
 from fastapi import APIRouter, HTTPException, Request
 from fastapi.responses import Response
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, generate_latest
-from rq import Worker
+
+from ..jobs import worker_health
 
 router = APIRouter(tags=["health"])
 
@@ -20,18 +19,7 @@ WAITING = Gauge("cloudgraph_jobs_waiting", "jobs waiting on other jobs", registr
 RUNNING = Gauge("cloudgraph_jobs_running", "jobs being run", registry=REGISTRY)
 FAILED = Gauge("cloudgraph_jobs_failed", "failed jobs kept", registry=REGISTRY)
 WORKERS = Gauge("cloudgraph_workers", "live workers", registry=REGISTRY)
-
-
-def live_workers(request: Request) -> int:
-    """Workers that have beaten within HEARTBEAT_S + 15 s. (RQ's worker registry keeps a killed
-    worker until another worker's maintenance removes it: a lone worker's death never shows.)"""
-    limit = request.app.state.settings.HEARTBEAT_S + 15
-    now = datetime.now(UTC)
-    return sum(
-        1
-        for w in Worker.all(queue=request.app.state.queue)
-        if w.last_heartbeat is not None and (now - w.last_heartbeat).total_seconds() < limit
-    )
+STUCK = Gauge("cloudgraph_workers_stuck", "live workers past their job's budget", registry=REGISTRY)
 
 
 @router.get("/healthz")
@@ -42,16 +30,18 @@ def healthz() -> dict:
 
 @router.get("/readyz")
 def readyz(request: Request) -> dict:
-    """Redis answers and at least one worker is alive."""
+    """Redis answers and at least one worker is alive and not stuck past its job's budget."""
     redis = request.app.state.redis
     try:
         redis.ping()
-    except Exception as err:
-        raise HTTPException(503, f"redis is not reachable: {err}") from None
-    workers = live_workers(request)
-    if workers < 1:
+    except Exception:
+        raise HTTPException(503, "redis is not reachable") from None
+    live, stuck = worker_health(request.app.state.queue, request.app.state.settings)
+    if live < 1:
         raise HTTPException(503, "no worker is alive: start one with `python -m worker`")
-    return {"status": "ready", "workers": workers}
+    if stuck >= live:
+        raise HTTPException(503, f"every worker ({live}) is stuck past its job's budget; see the worker log")
+    return {"status": "ready", "workers": live, "stuck": stuck}
 
 
 @router.get("/metrics")
@@ -62,7 +52,9 @@ def metrics(request: Request) -> Response:
         WAITING.set(queue.deferred_job_registry.count)
         RUNNING.set(queue.started_job_registry.count)
         FAILED.set(queue.failed_job_registry.count)
-        WORKERS.set(live_workers(request))
+        live, stuck = worker_health(queue, request.app.state.settings)
+        WORKERS.set(live)
+        STUCK.set(stuck)
     except Exception:  # Redis down: the request counters still come out
         pass
     return Response(generate_latest(REGISTRY), media_type=CONTENT_TYPE_LATEST)

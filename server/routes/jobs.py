@@ -9,6 +9,8 @@ from fastapi import APIRouter, HTTPException
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 
+from cloudgraph_service.errors import shown
+
 from ..deps import RedisDep
 from ..jobs import cancel, describe, fetch
 from ..schemas import JobPublic, JobStatus
@@ -20,7 +22,7 @@ TERMINAL = (JobStatus.finished, JobStatus.failed, JobStatus.canceled)
 def _job(redis, job_id: str):
     job = fetch(redis, job_id)
     if job is None:
-        raise HTTPException(404, f"no job {job_id!r}")
+        raise HTTPException(404, f"no job {shown(job_id)}")
     return job
 
 

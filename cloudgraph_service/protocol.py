@@ -1,0 +1,184 @@
+"""The queue protocol: Redis keys, job functions, meta fields, file names and time limits that the
+API and the workers both use, and the few queue operations that both sides perform.
+
+Job meta fields (``job.meta``), written by the API when it enqueues and by the worker as it runs:
+
+| field        | who     | meaning                                                          |
+|--------------|---------|------------------------------------------------------------------|
+| kind         | API     | precompute, render, frames or animation                          |
+| stage        | both    | the stage the job reports (``queued`` until a worker takes it)   |
+| fraction     | worker  | progress in [0, 1]                                               |
+| result_url   | API     | where the result is fetched once finished                        |
+| error        | both    | what went wrong, for people: no paths, class names or tracebacks |
+| failed       | both    | it ended failed without running (what it waited on failed)       |
+| canceled     | API     | a client cancelled it                                            |
+| children     | API     | an animation's frame jobs                                        |
+| out_dir      | API     | an animation's folder of frames                                  |
+| frames       | API     | an animation's frame count                                       |
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+from redis import Redis
+from rq import Queue
+from rq.exceptions import NoSuchJobError
+from rq.job import Job, JobStatus
+
+# ---------------------------------------------------------------------------- job functions
+PRECOMPUTE_JOB = "worker.jobs.precompute_job"
+RENDER_JOB = "worker.jobs.render_job"
+FRAMES_JOB = "worker.jobs.frames_job"
+ENCODE_JOB = "worker.jobs.encode_job"
+
+# ----------------------------------------------------------------------------- time limits
+RESULT_TTL_S = 7 * 24 * 3600  # finished and failed jobs are kept this long
+CANCEL_TTL_S = 24 * 3600  # a cancel flag outlives any job it can stop
+HEARTBEAT_GRACE_S = 15  # a worker is alive while its heartbeat is younger than HEARTBEAT_S + this
+KILL_GRACE_S = 5  # past its budget by this much, a job's worker process is killed
+LOCK_S = 30  # one request at a time per cache id
+
+# ------------------------------------------------------------------------------ ids, files
+#: Job ids the service makes (``cache-``, ``render-``, ``anim-`` + hex) and RQ's own (uuid4).
+JOB_ID = re.compile(r"[A-Za-z0-9_-]{1,100}")
+FRAME_FILE = "frame_{:05d}.png"
+FRAME_GLOB = "frame_*.png"
+FRAME_FFMPEG = "frame_%05d.png"  # FRAME_FILE as ffmpeg reads a numbered sequence
+VIDEO_FILE = "video.mp4"
+
+
+def is_job_id(text: str) -> bool:
+    """Whether ``text`` can be a job id at all (RQ refuses others with an error)."""
+    return JOB_ID.fullmatch(text) is not None
+
+
+def cancel_key(job_id: str) -> str:
+    """Redis key of a job's cancel flag, checked by the worker at every progress report."""
+    return f"cloudgraph:cancel:{job_id}"
+
+
+def lock_key(job_id: str) -> str:
+    """Redis key of the lock that makes enqueueing one cache's precompute happen once."""
+    return f"cloudgraph:lock:{job_id}"
+
+
+def render_path(outputs_dir: Path, job_id: str, fmt: str) -> Path:
+    """Where a render job writes its image."""
+    return outputs_dir / "renders" / f"{job_id}.{fmt}"
+
+
+def animation_dir(outputs_dir: Path, anim_id: str) -> Path:
+    """The folder of an animation's frames and video."""
+    return outputs_dir / "animations" / anim_id
+
+
+def fetch(redis: Redis, job_id: str) -> Job | None:
+    """The job, or None when there is none by that id or the id is not well-formed."""
+    if not is_job_id(job_id):
+        return None
+    try:
+        return Job.fetch(job_id, connection=redis)
+    except NoSuchJobError:
+        return None
+
+
+# ---------------------------------------------------------------------- ending jobs for good
+def end_dependents(job: Job, why: str, failed: bool) -> None:
+    """Ends the jobs that wait on ``job`` (and those that wait on them) with ``why`` as their
+    error, as failed or canceled. Once ``job`` has failed or been cancelled, RQ would leave them
+    deferred for ever: waiting, to clients, and taking room in the queue."""
+    todo, seen = list(job.dependent_ids), set()
+    while todo:
+        jid = todo.pop()
+        if jid in seen:
+            continue
+        seen.add(jid)
+        dep = fetch(job.connection, jid)
+        if dep is None or dep.get_status() != JobStatus.DEFERRED:
+            continue
+        dep.meta.update({"error": why, "failed" if failed else "canceled": True})
+        dep.save_meta()
+        dep.cancel()
+        todo.extend(dep.dependent_ids)
+
+
+def ended_dependency(job: Job) -> tuple[Job, bool] | None:
+    """(dependency, failed) for the first job that ``job`` waits on and that has ended without
+    finishing (failed, cancelled or gone); None while all of them may still finish."""
+    for jid in job.dependency_ids:
+        dep = fetch(job.connection, jid)
+        if dep is None:
+            return Job(jid, connection=job.connection), True
+        st = dep.get_status()
+        if st == JobStatus.FAILED or dep.meta.get("failed"):
+            return dep, True
+        if st in (JobStatus.CANCELED, JobStatus.STOPPED) or dep.meta.get("canceled"):
+            return dep, False
+    return None
+
+
+def end_if_orphaned(job: Job) -> bool:
+    """Ends ``job`` (and its dependents) when something it waits on has already ended without
+    finishing: the case of a job enqueued after its dependency failed, which RQ never wakes."""
+    if job.get_status() != JobStatus.DEFERRED:
+        return False
+    found = ended_dependency(job)
+    if found is None:
+        return False
+    dep, failed = found
+    why = f"it waited on job {dep.id}, which {'failed' if failed else 'was cancelled'}"
+    if dep.meta.get("error") and failed:
+        why += f": {dep.meta['error']}"
+    job.meta.update({"error": why, "failed" if failed else "canceled": True})
+    job.save_meta()
+    job.cancel()
+    end_dependents(job, why, failed)
+    return True
+
+
+def sweep_deferred(queue: Queue) -> int:
+    """Ends every waiting job of ``queue`` whose dependency ended without finishing; returns how
+    many. Run by the workers' supervisors now and then, so no route to failure leaves one."""
+    n = 0
+    for jid in queue.deferred_job_registry.get_job_ids():
+        job = fetch(queue.connection, jid)
+        if job is not None and end_if_orphaned(job):
+            n += 1
+    return n
+
+
+def fail_for_good(job: Job, message: str) -> None:
+    """Marks a started job failed with ``message`` (no retry, no restart brings it back), takes it
+    out of the started registry, and ends the jobs that wait on it."""
+    from rq.job_lifecycle import record_job_failure
+    from rq.utils import now
+
+    job.meta.update({"error": message, "stage": "failed"})
+    job.save_meta()
+    job.retries_left = 0
+    with job.connection.pipeline() as pipe:
+        job.started_job_registry.remove_executions(job, pipeline=pipe)
+        job.ended_at = job.ended_at or now()
+        record_job_failure(job, message, pipe)
+        job.save(pipeline=pipe, include_meta=False)
+        pipe.execute()
+    end_dependents(job, f"it waited on job {job.id}, which failed: {message}", failed=True)
+
+
+def requeue_after_death(job: Job) -> bool:
+    """Puts back a started job whose worker died under it, if it has retries left (True), else
+    fails it for good. The one kind of failure that is retried: it may not happen again."""
+    if not job.retries_left:
+        fail_for_good(job, "its worker died while running it, on every try; see the worker log")
+        return False
+    job.retries_left -= 1
+    queue = Queue(job.origin, connection=job.connection)
+    with job.connection.pipeline() as pipe:
+        job.started_job_registry.remove_executions(job, pipeline=pipe)
+        job.meta.update({"stage": "queued"})
+        job.started_at = None
+        queue._enqueue_job(job, pipeline=pipe, at_front=True)
+        pipe.execute()
+    return True

@@ -1,0 +1,109 @@
+"""``python -m server.volume_check FILE NAME``: reads an upload in a child process of the API.
+
+A volume file is small and sparse, but densified it can be huge, and a corrupt one can crash
+the OpenVDB reader: both happen here, never in the API process. The process runs under a memory
+limit derived from ``MAX_VOXELS``; before anything is densified, every float grid's active
+bounding box is checked against ``MAX_VOXELS`` in Python integers (no overflow). Then the file
+is stored (``VolumeStore.put``) and its description gains, per float grid, the densest value
+and the voxel size that the API's density_scale check needs.
+
+Prints one JSON line: ``{"info": ..., "created": ...}`` or ``{"error": ..., "status": 413|422}``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import sys
+import tempfile
+from pathlib import Path
+
+from cloudgraph_service.settings import Settings
+
+_FLOAT = ("float", "half")
+
+
+def memory_limit(max_voxels: int) -> int:
+    """Bytes of address space for the check: the dense float32 grid, two more arrays of its size
+    on the way (the finite check, the copy), and 1 GiB for the interpreter and libraries."""
+    return 6 * max_voxels + 2**30
+
+
+def grid_stats(path: Path, name: str, max_voxels: int) -> dict[str, dict]:
+    """Per float grid of a .vdb: active bounding box size, densest value, voxel size.
+
+    Raises:
+        VolumeError: a grid whose bounding box holds more than ``max_voxels`` voxels.
+    """
+    import pyopenvdb as vdb
+
+    from cloudgraph.errors import VolumeError
+    from cloudgraph.volume import _value_type, vdb_grid_table
+
+    out = {}
+    for grid, tree in vdb_grid_table(path):
+        if _value_type(tree) not in _FLOAT:
+            continue
+        try:
+            g = vdb.read(str(path), grid)
+        except (TypeError, LookupError, RuntimeError, OSError, ValueError):
+            continue  # put() below says what is wrong if this grid is the one it reads
+        if g.activeVoxelCount() == 0:
+            continue
+        lo, hi = g.evalActiveVoxelBoundingBox()
+        dims = [int(b) - int(a) + 1 for a, b in zip(lo, hi, strict=True)]
+        n = dims[0] * dims[1] * dims[2]  # Python integers: no overflow
+        if n > max_voxels:
+            raise VolumeError(
+                f"{name}: grid {grid!r} has active voxels spread over a {dims[0]}x{dims[1]}x{dims[2]} box "
+                f"({n} voxels dense), over the limit of {max_voxels} (MAX_VOXELS); crop or resample it"
+            )
+        vmin, vmax = g.evalMinMax()
+        out[grid] = {
+            "dims": dims,
+            "value_max": float(vmax),
+            "voxel_size": [float(v) for v in g.transform.voxelSize()],
+        }
+    return out
+
+
+def check(path: Path, name: str, settings: Settings) -> dict:
+    """Checks and stores one upload; the JSON answer for the API."""
+    from cloudgraph.errors import VolumeError
+    from cloudgraph.store import VolumeStore
+
+    store = VolumeStore(settings.volumes_dir)
+    try:
+        with open(path, "rb") as f:
+            is_vdb = f.read(3) != b"VOL"
+        stats = grid_stats(path, name, settings.MAX_VOXELS) if is_vdb else {}
+        with open(path, "rb") as f:
+            info, created = store.put(f, settings.MAX_UPLOAD_MB * 2**20, name)
+    except VolumeError as err:
+        return {"error": str(err), "status": 422}
+    except MemoryError:
+        return {"error": f"{name} needs more memory to read than the service allows", "status": 422}
+    if created:
+        for g in info["grids"]:
+            g.update(stats.get(g["name"], {}))
+        if not stats:  # a .vol: its one grid is the density
+            g = info["grids"][0]
+            g.update(value_max=info["value_range"][1], voxel_size=info["voxel_size"])
+        meta = store.root / f"{info['id']}.json"
+        fd, tmp = tempfile.mkstemp(dir=store.root, prefix=f".{meta.name}.", suffix=".tmp")
+        with os.fdopen(fd, "w") as f:
+            json.dump(info, f)
+        os.replace(tmp, meta)
+    return {"info": info, "created": created}
+
+
+def main() -> None:
+    settings = Settings.from_env()
+    limit = memory_limit(settings.MAX_VOXELS)
+    resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
+    print(json.dumps(check(Path(sys.argv[1]), sys.argv[2], settings)))
+
+
+if __name__ == "__main__":
+    main()
