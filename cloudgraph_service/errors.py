@@ -7,8 +7,8 @@ import re
 
 from cloudgraph.errors import CloudgraphError
 
-#: An absolute path: what a message must not show.
-_PATH = re.compile(r"(?<![\w.~:])/(?:[^\s'\"/,;:()]+/)*[^\s'\",;:()]+")
+#: An absolute path: what a message must not show (the API's own routes, /v1/..., are fine).
+_PATH = re.compile(r"(?<![\w.~:/])/(?!v1/)(?:[^\s'\"/,;:()]+/)*[^\s'\",;:()]+")
 _VOLUME_FILE = re.compile(r"\.(vdb|vol)$")
 
 

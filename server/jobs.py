@@ -19,7 +19,6 @@ from cloudgraph_service.protocol import (
     CANCEL_TTL_S,
     FRAME_GLOB,
     HEARTBEAT_GRACE_S,
-    KILL_GRACE_S,
     RESULT_TTL_S,
     cancel_key,
     end_dependents,
@@ -177,7 +176,7 @@ def cancel(redis: Redis, job: Job) -> None:
 
 def worker_health(queue: Queue, settings: Settings) -> tuple[int, int]:
     """(live, stuck): workers that have beaten within HEARTBEAT_S + grace, and those of them
-    whose job has run past its budget (its supervisor should have stopped it by now).
+    whose job has run past its budget (its supervisor kills it KILL_GRACE_S later).
 
     RQ's worker registry keeps a killed worker until another worker's maintenance removes it, so
     liveness is judged by the heartbeat's age, not by registration.
@@ -195,7 +194,7 @@ def worker_health(queue: Queue, settings: Settings) -> tuple[int, int]:
         if job is None or job.started_at is None:
             continue
         ran = (now - job.started_at.replace(tzinfo=UTC)).total_seconds()
-        if ran > (job.timeout or settings.JOB_TIMEOUT_S) + KILL_GRACE_S:
+        if ran > (job.timeout or settings.JOB_TIMEOUT_S):
             stuck.add(job.worker_name)
     return len(live), sum(1 for w in live if w.name in stuck)
 
