@@ -1,0 +1,1 @@
+"""The cluster (compose.yaml) end to end, in Docker."""
