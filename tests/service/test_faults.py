@@ -15,9 +15,11 @@ from rq.job import JobStatus
 from rq.results import Result
 
 from ..harness import (
+    BLENDER,
     FOG,
     SMOKE,
     assert_no_leak,
+    blender_cache,
     cache_of,
     detail,
     fog_scene,
@@ -30,6 +32,7 @@ from ..harness import (
     start_service,
     upload,
     wait_job,
+    wait_stage,
     wait_until,
 )
 
@@ -50,13 +53,12 @@ def test_a_killed_workers_job_is_retried_by_another_and_leaves_no_partial_cache(
     s = start_service(tmp_path / "kill", workers=2, HEARTBEAT_S=2)
     try:
         with s.client() as c:
-            vid = upload(c, SMOKE).json()["id"]
-            r = c.post("/v1/caches", json=cache_of(smoke_scene(vid, 0.37)))
+            vid = upload(c, BLENDER).json()["id"]
+            r = c.post("/v1/caches", json=blender_cache(vid))
             assert r.status_code == 202, r.text
             job = job_of(r)
             assert c.get("/readyz").json()["workers"] == 2
-            building = ("group", "reinforce")  # the graph is being built: nothing is written yet
-            wait_until(lambda: c.get(f"/v1/jobs/{job}").json()["stage"] in building, 120, "no graph build")
+            wait_stage(c, job)  # killed mid-precompute
             redis = rq(s)
             name = rq_job(s, job).worker_name
             pid = next(w.pid for w in Worker.all(connection=redis) if w.name == name)
@@ -65,6 +67,9 @@ def test_a_killed_workers_job_is_retried_by_another_and_leaves_no_partial_cache(
             end = wait_job(c, job, timeout=180)
             assert end["status"] == "finished", end
             assert end["result"]["stats"]["nodes"] > 1000
+            assert (s.data_dir / "worker0.log").read_text().count("put back in the queue") + (
+                s.data_dir / "worker1.log"
+            ).read_text().count("put back in the queue") == 1
             rjob = rq_job(s, job)
             assert rjob.worker_name != name
             assert rjob.retries_left == 1  # one of the two retries used
