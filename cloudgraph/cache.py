@@ -15,6 +15,7 @@ import hashlib
 import json
 import os
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -86,6 +87,10 @@ class CacheStore:
     def radiance_path(self, key: str) -> Path:
         return self.root / "radiance" / f"{key}.npz"
 
+    def field_path(self, key: str) -> Path:
+        """The radiance field of a radiance key: gzip-compressed bytes (``cloudgraph/field.py``)."""
+        return self.root / "fields" / f"{key}.cgf.gz"
+
     # ------------------------------------------------------------------ graphs
     def save_graph(self, key: str, graph: Graph) -> Path:
         c = graph.counts.tocsr()
@@ -130,19 +135,43 @@ class CacheStore:
         z = _load(self.radiance_path(key), "radiance")
         return None if z is None else ((z["radiance"], z["radiance_gather"]), json.loads(str(z["stats"])))
 
+    # ------------------------------------------------------------------ fields
+    def save_field(self, key: str, data: bytes) -> Path:
+        path = self.field_path(key)
+        with atomic_writer(path) as f:
+            f.write(data)
+        return path
 
-def _atomic_save(path: Path, kind: str, **arrays) -> Path:
+    def load_field(self, key: str) -> bytes | None:
+        path = self.field_path(key)
+        try:
+            os.utime(path)  # last use, for least-recently-used eviction
+            return path.read_bytes()
+        except FileNotFoundError:
+            return None
+
+
+@contextmanager
+def atomic_writer(path: Path):
+    """A binary file that appears at ``path`` whole or not at all: written under a temporary name
+    in the same folder, synced, then renamed into place (removed if the writer fails)."""
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
-            np.savez(f, format_version=ENGINE_FORMAT_VERSION, kind=kind, **arrays)
+            yield f
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def _atomic_save(path: Path, kind: str, **arrays) -> Path:
+    with atomic_writer(path) as f:
+        np.savez(f, format_version=ENGINE_FORMAT_VERSION, kind=kind, **arrays)
     return path
 
 

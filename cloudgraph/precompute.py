@@ -1,6 +1,8 @@
-"""The precompute: graph (§4.3) -> direct radiance (§4.4) -> transport (§4.5), through the cache.
+"""The precompute: graph (§4.3) -> direct radiance (§4.4) -> transport (§4.5) -> radiance field,
+through the cache.
 
-A changed albedo, light or depth reuses the graph and recomputes only the radiance.
+A changed albedo, light or depth reuses the graph and recomputes only the radiance and the field
+(a relight).
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .cache import CacheStore, graph_key, radiance_key, volume_id
+from .field import RadianceField, bake_field
 from .graph import BuildParams, Graph, build_graph, build_params
 from .lighting import direct_radiance
 from .scene import Scene
@@ -36,12 +39,14 @@ class RadianceCache:
         radiance_gather: (N, 3) the same with one scattering event fewer (max_depth - 1), for
             estimators that scatter once more before looking up (the same when unbounded).
         keys: volume_id, graph_key, radiance_key.
-        stats: graph and radiance stats, stage times, bytes.
+        field: the baked :class:`~cloudgraph.field.RadianceField` (the ``field`` estimator's).
+        stats: graph, radiance and field stats, stage times, bytes.
     """
 
     graph: Graph
     radiance: np.ndarray
     radiance_gather: np.ndarray
+    field: RadianceField
     keys: dict
     stats: dict
 
@@ -122,15 +127,37 @@ def precompute(
             "transport_iterations": iterations,
         }
         store.save_radiance(rkey, radiance, radiance_gather, rstats)
+    found_field = store.load_field(rkey)
+    if found_field is not None:
+        field, fstats = RadianceField.decode(found_field), {}
+    else:
+        progress("field", 0.95)
+        field, fstats = bake_field(
+            volume,
+            scene.medium.density_scale,
+            graph,
+            radiance_gather,
+            scene.medium.albedo_rgb(),
+            light_dir,
+            scene.light.irradiance_rgb(),
+            params.radius,
+            rkey,
+        )
+        data = field.encode()
+        store.save_field(rkey, data)
+        field = RadianceField.decode(data)  # render what is stored, fresh or loaded alike
     progress("done", 1.0)
     stats = {
         **graph.stats,
         **rstats,
+        **fstats,
         "graph_reused": graph_reused,
         "radiance_reused": found is not None,
+        "field_reused": found_field is not None,
         "graph_bytes": store.graph_path(gkey).stat().st_size,
         "radiance_bytes": store.radiance_path(rkey).stat().st_size,
+        "field_bytes": store.field_path(rkey).stat().st_size,
         "radius": params.radius,
         "quality": quality,
     }
-    return RadianceCache(graph, radiance, radiance_gather, keys, stats)
+    return RadianceCache(graph, radiance, radiance_gather, field, keys, stats)

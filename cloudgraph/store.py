@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 from typing import BinaryIO
 
+from .cache import atomic_writer
 from .errors import VolumeError
 from .volume import VDB_MAGIC, volume_info
 
@@ -71,7 +72,8 @@ class VolumeStore:
             )
             del info["path"]
             os.replace(tmp, self.root / f"{vid}{ext}")
-            _atomic_write_text(self.root / f"{vid}.json", json.dumps(info))
+            with atomic_writer(self.root / f"{vid}.json") as f:
+                f.write(json.dumps(info).encode())
             return info, True
         finally:
             Path(tmp).unlink(missing_ok=True)
@@ -105,13 +107,6 @@ def _is_hex_id(s: str) -> bool:
     return len(s) == 64 and all(c in "0123456789abcdef" for c in s)
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
-
-
 def evict_lru(root: str | Path, max_bytes: int, min_age_s: float = 300.0) -> list[Path]:
     """Deletes the least recently used files under ``root`` until they total at most ``max_bytes``.
 
@@ -127,7 +122,7 @@ def evict_lru(root: str | Path, max_bytes: int, min_age_s: float = 300.0) -> lis
                 tmp.unlink()
         except FileNotFoundError:
             pass
-    files = [p for p in Path(root).rglob("*.npz") if p.is_file()]
+    files = [p for pat in ("*.npz", "*.cgf.gz") for p in Path(root).rglob(pat) if p.is_file()]
     stats = [(p, p.stat()) for p in files]
     total = sum(s.st_size for _, s in stats)
     removed = []

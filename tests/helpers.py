@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from cloudgraph.render import render_volpath
+from cloudgraph.scene import parse_scene
 from cloudgraph.volume import box_volume
 
 
@@ -72,3 +74,31 @@ def framed_camera(volume, eye_dir=(0.6, 0.0, 0.8), size=40) -> dict:
         "width": size,
         "height": size,
     }
+
+
+def medium_scene(volume, density_scale: float, albedo: float = 0.9, spp: int = 16, **camera):
+    return parse_scene(
+        {
+            "volume": {"path": "unused.vdb"},
+            "medium": {"density_scale": density_scale, "albedo": albedo},
+            "light": {"direction": LIGHT, "irradiance": 1.0},
+            "camera": framed_camera(volume, **camera),
+            "render": {"spp": spp, "max_depth": -1, "seed": 0},
+        }
+    )
+
+
+def reference(scene, volume, spp: int = 512) -> np.ndarray:
+    """volpath with Russian roulette off, at ``spp``, another seed than the graph render's."""
+    ref = scene.model_copy(update={"render": scene.render.model_copy(update={"spp": spp, "seed": 1})})
+    return render_volpath(ref, volume).astype(np.float64)
+
+
+def render_march(cache, volume, scene, spp: int = 16) -> np.ndarray:
+    from cloudgraph.integrators.graph import GraphRenderer
+
+    renderer = GraphRenderer(cache, volume, scene, estimator="march")
+    return renderer.render(scene.camera, spp).astype(np.float64)
+
+
+# ------------------------------------------------------------------ shared scenes

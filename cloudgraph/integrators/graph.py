@@ -12,6 +12,8 @@ The camera-stage estimator of Eq. 4.24 is a replaceable part (``estimator``):
 |                 | tracking to the light), then one free flight to p'' and L'_search(p'')   |
 | ``free_flight`` | the thesis's: sample p' by delta tracking, weight albedo(p') L'_search(p') |
 | ``march``       | jittered ray march: sum T_r sigma_s L'_search dt along the ray (less noise) |
+| ``field``       | deterministic march of the baked radiance field (``cloudgraph/field.py``): |
+|                 | single scattering exact to the grid, the rest from the graph, no noise   |
 
 Looking L' up where the camera's collision falls biases thick media upwards: node centres sit
 deeper than the camera's first collision, and radiance grows with depth below a free surface
@@ -24,11 +26,13 @@ Plugin parameters (set through :meth:`GraphIntegrator.set_cache`, not the scene 
 | name      | type   | default       | meaning                                  |
 |-----------|--------|---------------|------------------------------------------|
 | estimator | string | ``gather``      | the camera-stage estimator above         |
-| step      | float  | node radius / 2 | march step, world units                  |
+| step      | float  | node radius / 2 | ``march`` step, world units (``field``: half a field voxel) |
 
 Node radiance is gathered through a uniform grid of node lists that lives in Dr.Jit, so the
 whole camera stage is one kernel; per-frame values come from the sensor, and nothing is
-recompiled when only the camera moves.
+recompiled when only the camera moves. The ``field`` estimator needs no node grid at all: one
+sample per pixel is a converged image (more only antialias), and empty space is skipped block by
+block with the field's majorant grid.
 """
 
 from __future__ import annotations
@@ -39,9 +43,11 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..options import ESTIMATORS
 from ..tracing import DensityField, ratio_tracking, sample_collision, uniform_sphere
 
-ESTIMATORS = ("gather", "free_flight", "march")
+#: The field march stops where the transmittance from the camera falls below this.
+FIELD_TR_MIN = 1e-3
 
 
 # ------------------------------------------------------------------ spatial index
@@ -114,7 +120,7 @@ class NodeGrid:
         end = dr.gather(mi.UInt32, self.cell_start, c + 1, inside)
         L = mi.Color3f(0.0)  # Weighted radiance sum
         W = mi.Float(0.0)  # Weight sum
-        loop = mi.Bool(inside)
+        loop = inside & (i < end)  # an empty cell has nothing to read
         while dr.hint(loop, label="node_gather"):
             a = dr.gather(mi.UInt32, self.entries, i, loop)
             d2 = dr.squared_norm(p - dr.gather(mi.Point3f, self.positions, a, loop))
@@ -127,6 +133,50 @@ class NodeGrid:
         return dr.select(W > 0, L / W, 0.0)
 
 
+@dataclass
+class FieldTextures:
+    """A :class:`~cloudgraph.field.RadianceField` in Dr.Jit for the ``field`` estimator.
+
+    Attributes:
+        tau: optical depth to the light, 1 channel; ms: radiance after the first scattering, 3
+            channels; both trilinear, clamped, over the unit cube.
+        majorant: flat (bz*by*bx,) block majorants; blocks: their counts; block_unit: a block's
+            side in unit-cube coordinates, per axis.
+        step: march step, world units.
+        max_steps: iteration cap of the march: a ray takes each step and skips each block once.
+    """
+
+    tau: object
+    ms: object
+    majorant: object
+    blocks: tuple
+    block_unit: tuple
+    step: float
+    max_steps: int
+
+    @classmethod
+    def from_field(cls, field) -> FieldTextures:
+        def texture(a: np.ndarray):
+            a = np.ascontiguousarray(a if a.ndim == 4 else a[..., None], np.float32)
+            return mi.Texture3f(mi.TensorXf(a), filter_mode=dr.FilterMode.Linear, wrap_mode=dr.WrapMode.Clamp)
+
+        from ..field import BLOCK
+
+        nz, ny, nx = field.sigma_t.shape
+        bz, by, bx = field.majorant.shape
+        step = float(field.meta["step"])
+        diag = float(np.linalg.norm(np.subtract(*field.meta["world_bbox"][::-1])))
+        return cls(
+            tau=texture(field.tau_light),
+            ms=texture(field.radiance_ms),
+            majorant=mi.Float(field.majorant.ravel().astype(np.float32)),
+            blocks=(bx, by, bz),
+            block_unit=(BLOCK / nx, BLOCK / ny, BLOCK / nz),
+            step=step,
+            max_steps=int(2 * (diag / step + 3 * (bx + by + bz)) + 16),
+        )
+
+
 # ------------------------------------------------------------------ integrator
 
 
@@ -136,24 +186,27 @@ class GraphIntegrator(mi.SamplingIntegrator):
     def __init__(self, props: mi.Properties):
         super().__init__(props)
         self.estimator = props.get("estimator", "gather")
-        self.field = None
-        self.grid = None
+        self.medium = self.grid = self.field = None
 
     def set_cache(
         self,
-        field: DensityField,
-        grid: NodeGrid,
+        medium: DensityField,
         albedo,
-        node_radius: float,
         light_dir,
         irradiance,
         estimator: str = "gather",
+        grid: NodeGrid | None = None,
+        field: FieldTextures | None = None,
+        node_radius: float = 1.0,
         step: float | None = None,
     ) -> None:
-        """Hands the integrator its medium, its node grid and the light (for ``gather``)."""
+        """Hands the integrator its medium, the light, and a node grid (Monte Carlo estimators)
+        or a baked field (``field``)."""
         if estimator not in ESTIMATORS:
             raise ValueError(f"unknown estimator {estimator!r}; choose one of {', '.join(ESTIMATORS)}")
-        self.field, self.grid, self.estimator = field, grid, estimator
+        if (field is None) == (estimator == "field"):
+            raise ValueError("the field estimator takes a field, the others a node grid")
+        self.medium, self.grid, self.field, self.estimator = medium, grid, field, estimator
         self.albedo = tuple(float(a) for a in albedo)
         self.to_light = tuple(-float(c) for c in np.asarray(light_dir) / np.linalg.norm(light_dir))
         self.irradiance = tuple(float(e) for e in np.broadcast_to(np.asarray(irradiance, float), (3,)))
@@ -172,24 +225,24 @@ class GraphIntegrator(mi.SamplingIntegrator):
         # Final gather: sample p' by delta tracking; at p', single scattering exactly (next-event
         # estimation by ratio tracking to the light, Eq. 4.22 at a point) plus one more free
         # flight to p'', where the graph's L' stands in for everything after (Eq. 4.25).
-        t, collided = sample_collision(self.field, o, d, rng, active)
+        t, collided = sample_collision(self.medium, o, d, rng, active)
         p = mi.Point3f(o + t * d)
-        Tr = ratio_tracking(self.field, p, mi.Vector3f(*self.to_light), rng, collided)
+        Tr = ratio_tracking(self.medium, p, mi.Vector3f(*self.to_light), rng, collided)
         L_ss = Tr * mi.Color3f(*self.irradiance) / (4.0 * dr.pi)
         w = uniform_sphere(rng)
-        t2, collided2 = sample_collision(self.field, p, w, rng, collided)
+        t2, collided2 = sample_collision(self.medium, p, w, rng, collided)
         L_ms = mi.Color3f(*self.albedo) * self.grid.lookup(p + t2 * w, self.eps2, collided2)
         return dr.select(collided, mi.Color3f(*self.albedo) * (L_ss + dr.select(collided2, L_ms, 0.0)), 0.0)
 
     def _free_flight(self, o, d, rng, active):
         # Sample p' with pdf sigma_t T_r; the estimate of Eq. 4.24 is albedo L'_search(p')
-        t, collided = sample_collision(self.field, o, d, rng, active)
+        t, collided = sample_collision(self.medium, o, d, rng, active)
         L = self.grid.lookup(o + t * d, self.eps2, collided)
         return dr.select(collided, mi.Color3f(*self.albedo) * L, 0.0)
 
     @dr.syntax
     def _march(self, o, d, rng, active):
-        t, t_end = self.field.box_interval(o, d)
+        t, t_end = self.medium.box_interval(o, d)
         u = rng.next_float32()  # one jitter per ray, shared by its segments
         L = mi.Color3f(0.0)  # Radiance accumulator
         Tr = mi.Float(1.0)  # Transmittance from the camera
@@ -197,7 +250,7 @@ class GraphIntegrator(mi.SamplingIntegrator):
         while dr.hint(active, label="march"):
             dt = dr.minimum(self.step, t_end - t)
             p = o + (t + u * dt) * d
-            sigma_t = self.field.sigma_t(p)
+            sigma_t = self.medium.sigma_t(p)
             # Eq. 4.24 over one segment with sigma_t and L' held at the sample point:
             # int T_r sigma_s L' dt = T_r(t) (1 - exp(-sigma_t dt)) albedo L'
             seg_Tr = dr.exp(-sigma_t * dt)
@@ -206,6 +259,63 @@ class GraphIntegrator(mi.SamplingIntegrator):
             Tr *= seg_Tr
             t += dt
             active &= (t < t_end) & (Tr > 1e-4)
+        return L
+
+    def _field_in(self, p, active):
+        """(sigma_t, L_in) at world points p: L_in = E exp(-tau_light) / 4pi + L_ms (field.py)."""
+        f = self.field
+        pu = self.medium.world_to_unit @ mi.Point3f(p)
+        ms = f.ms.eval(pu, active)
+        L_in = mi.Color3f(*self.irradiance) / (4.0 * dr.pi) * dr.exp(-f.tau.eval(pu, active)[0])
+        sigma_t = self.medium.texture.eval(pu, active)[0] * self.medium.scale
+        return sigma_t, L_in + mi.Color3f(ms[0], ms[1], ms[2])
+
+    @dr.syntax
+    def _field(self, o, d, rng, active):
+        # Eq. 4.24 through the baked field, segment by segment in closed form (an exponential
+        # integrator): sigma_t is taken as the mean of its end values over a segment and L_in as
+        # linear in optical depth x between its end values L0, L1, so that with dtau = sigma dt
+        #   int_seg T_r sigma_s L_in dt
+        #     = T_r(t) albedo [L0 (1 - e^-dtau) + (L1 - L0) (1 - e^-dtau (1 + dtau)) / dtau]
+        # (exact for a constant sigma_t and linear L_in). Each step evaluates one new end point;
+        # one jitter per ray shifts the step grid against banding.
+        f = self.field
+        t, t_end = self.medium.box_interval(o, d)
+        ou = self.medium.world_to_unit @ mi.Point3f(o)
+        du = self.medium.world_to_unit @ mi.Vector3f(d)
+        inv_du = dr.select(dr.abs(du) > 1e-12, dr.rcp(du), dr.inf)
+        blocks = mi.Vector3i(*f.blocks)
+        block_unit = mi.Vector3f(*f.block_unit)
+        albedo = mi.Color3f(*self.albedo)
+        first = (1.0 - rng.next_float32()) * f.step  # one jitter per ray: the first segment's length
+        L = mi.Color3f(0.0)  # Radiance accumulator
+        Tr = mi.Float(1.0)  # Transmittance from the camera
+        active = active & (t < t_end)
+        t = dr.select(active, t, 0.0)  # rays that miss may have no finite entry point
+        sigma0, L0 = self._field_in(o + t * d, active)  # values at the segment's start
+        steps = mi.UInt32(0)  # Iteration cap: a ray takes each step and skips each block once
+        while dr.hint(active, label="field_march"):
+            # Empty-space skipping: the majorant of the block holding t; zero -> jump to its exit
+            pu = ou + t * du
+            b = dr.clip(mi.Vector3i(dr.floor(pu / block_unit)), 0, blocks - 1)
+            maj = dr.gather(mi.Float, f.majorant, b.x + blocks.x * (b.y + blocks.y * b.z), active)
+            lo = mi.Vector3f(b) * block_unit
+            exit_ = dr.select(du > 0, lo + block_unit - pu, lo - pu) * inv_du
+            skip = dr.minimum(dr.minimum(exit_.x, exit_.y), exit_.z) + 1e-3 * f.step
+            empty = maj <= 0.0
+            dt = dr.select(steps == 0, first, f.step)
+            dt = dr.minimum(dr.select(empty, dr.maximum(skip, 1e-3 * f.step), dt), t_end - t)
+            sigma1, L1 = self._field_in(o + (t + dt) * d, active)
+            # One segment (nothing to add across an empty block)
+            dtau = dr.select(empty, 0.0, 0.5 * (sigma0 + sigma1) * dt)
+            seg_Tr = dr.exp(-dtau)
+            w1 = dr.select(dtau > 1e-3, (1.0 - seg_Tr * (1.0 + dtau)) / dr.maximum(dtau, 1e-3), 0.5 * dtau)
+            L += Tr * albedo * (L0 * (1.0 - seg_Tr) + (L1 - L0) * w1)
+            Tr *= seg_Tr
+            t += dt
+            sigma0, L0 = sigma1, L1
+            steps += 1
+            active &= (t < t_end) & (Tr > FIELD_TR_MIN) & (steps < f.max_steps)
         return L
 
     def aov_names(self):
@@ -219,41 +329,52 @@ class GraphIntegrator(mi.SamplingIntegrator):
 
 
 class GraphRenderer:
-    """A radiance cache loaded for rendering: any camera, kernels reused across cameras.
+    """A radiance cache loaded for rendering: any camera, any estimator, kernels reused.
 
-    One Mitsuba scene (sensor + this integrator) is kept per image size; a new camera only
-    updates the sensor's parameters, which Mitsuba passes to the kernels as opaque values.
+    One integrator is made per estimator when first asked for (the ``field`` estimator needs no
+    node grid, the others no field), and one Mitsuba scene per (image size, estimator); a new
+    camera only updates the sensor's parameters, which Mitsuba passes to the kernels as opaque
+    values.
     """
 
     def __init__(self, cache, volume, scene, estimator: str = "gather", step: float | None = None):
-        self.volume = volume
-        field = DensityField.from_volume(volume, scene.medium.density_scale)
-        g = cache.graph
-        radiance = cache.radiance_gather if estimator == "gather" else cache.radiance
-        grid = NodeGrid.build(g.positions, g.search_radius, radiance)
-        self.integrator = GraphIntegrator(mi.Properties())
-        self.integrator.set_cache(
-            field,
-            grid,
-            scene.medium.albedo_rgb(),
-            cache.stats["radius"],
-            scene.light.unit_direction(),
-            scene.light.irradiance_rgb(),
-            estimator,
-            step,
-        )
-        self._scenes: dict[tuple[int, int], tuple] = {}
+        self.cache, self.volume, self.estimator, self.step = cache, volume, estimator, step
+        self.medium = DensityField.from_volume(volume, scene.medium.density_scale)
+        self.light = (scene.medium.albedo_rgb(), scene.light.unit_direction(), scene.light.irradiance_rgb())
+        self._integrators: dict[str, GraphIntegrator] = {}
+        self._scenes: dict[tuple, tuple] = {}
 
-    def render(self, camera, spp: int, seed: int = 0) -> np.ndarray:
+    def integrator(self, estimator: str) -> GraphIntegrator:
+        """The integrator of one estimator, made (and its node grid or field uploaded) once."""
+        if estimator not in ESTIMATORS:
+            raise ValueError(f"unknown estimator {estimator!r}; choose one of {', '.join(ESTIMATORS)}")
+        if estimator not in self._integrators:
+            grid = field = None
+            if estimator == "field":
+                field = FieldTextures.from_field(self.cache.field)
+            else:
+                g = self.cache.graph
+                radiance = self.cache.radiance_gather if estimator == "gather" else self.cache.radiance
+                grid = NodeGrid.build(g.positions, g.search_radius, radiance)
+            integrator = GraphIntegrator(mi.Properties())
+            integrator.set_cache(
+                self.medium, *self.light, estimator, grid, field, self.cache.stats["radius"], self.step
+            )
+            self._integrators[estimator] = integrator
+        return self._integrators[estimator]
+
+    def render(self, camera, spp: int, seed: int = 0, estimator: str | None = None) -> np.ndarray:
         """(H, W, 3) float32 linear radiance for a :class:`~cloudgraph.scene.CameraSpec`."""
         from ..mitsuba_scene import sensor_dict
 
+        estimator = estimator or self.estimator
         sensor = sensor_dict(camera, self.volume, spp, seed)
-        size = (camera.width, camera.height)
-        if size not in self._scenes:
-            mscene = mi.load_dict({"type": "scene", "integrator": self.integrator, "sensor": sensor})
-            self._scenes[size] = (mscene, mi.traverse(mscene))
-        mscene, params = self._scenes[size]
+        key = (camera.width, camera.height, estimator)
+        if key not in self._scenes:
+            integrator = self.integrator(estimator)
+            mscene = mi.load_dict({"type": "scene", "integrator": integrator, "sensor": sensor})
+            self._scenes[key] = (mscene, mi.traverse(mscene))
+        mscene, params = self._scenes[key]
         params["sensor.to_world"] = sensor["to_world"]
         params["sensor.x_fov"] = sensor["fov"]
         # near_clip and far_clip are plain floats that Mitsuba compiles into the kernel: they stay

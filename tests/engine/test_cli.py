@@ -138,6 +138,15 @@ def test_cli_precompute_prints_keys_and_sizes_and_render_uses_the_cache(variant,
     assert "graph: 32x24 at 4 spp" in r.stdout
     image = read_exr(tmp_path / "g.exr")
     assert image.shape == (24, 32, 3) and np.isfinite(image).all() and image.mean() > 0
+    # the field estimator: the same scene, deterministic, no noise to speak of at 4 spp
+    r = cli(
+        "render", tmp_path / "scene.json", "--integrator", "graph", "--estimator", "field",
+        "--quality", "draft", "--cache-dir", cache_dir, "--out", tmp_path / "f.exr",
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    field = read_exr(tmp_path / "f.exr")
+    assert field.shape == image.shape and abs(field.mean() / image.mean() - 1) < 0.1
     # the render found the cache: nothing new was built
     assert [p.stem for p in (cache_dir / "graphs").iterdir()] == [keys["graph_key"]]
     assert [p.stem for p in (cache_dir / "radiance").iterdir()] == [keys["radiance_key"]]
+    assert [p.name for p in (cache_dir / "fields").iterdir()] == [keys["radiance_key"] + ".cgf.gz"]

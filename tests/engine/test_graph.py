@@ -14,50 +14,9 @@ import scipy.sparse.linalg as spla
 
 from cloudgraph.cache import CacheStore
 from cloudgraph.precompute import precompute
-from cloudgraph.render import render_volpath
-from cloudgraph.scene import parse_scene
-from cloudgraph.volume import noise_volume, sphere_volume
+from cloudgraph.volume import sphere_volume
 
-from ..helpers import LIGHT, framed_camera
-
-
-def medium_scene(volume, density_scale: float, albedo: float = 0.9, spp: int = 16, **camera):
-    return parse_scene(
-        {
-            "volume": {"path": "unused.vdb"},
-            "medium": {"density_scale": density_scale, "albedo": albedo},
-            "light": {"direction": LIGHT, "irradiance": 1.0},
-            "camera": framed_camera(volume, **camera),
-            "render": {"spp": spp, "max_depth": -1, "seed": 0},
-        }
-    )
-
-
-def reference(scene, volume, spp: int = 512) -> np.ndarray:
-    """volpath with Russian roulette off, at ``spp``, another seed than the graph render's."""
-    ref = scene.model_copy(update={"render": scene.render.model_copy(update={"spp": spp, "seed": 1})})
-    return render_volpath(ref, volume).astype(np.float64)
-
-
-def render_march(cache, volume, scene, spp: int = 16) -> np.ndarray:
-    from cloudgraph.integrators.graph import GraphRenderer
-
-    renderer = GraphRenderer(cache, volume, scene, estimator="march")
-    return renderer.render(scene.camera, spp).astype(np.float64)
-
-
-# ------------------------------------------------------------------ shared scenes
-
-
-@pytest.fixture(scope="module")
-def sphere(variant, tmp_path_factory):
-    """A homogeneous sphere of radius 11 voxels, optical radius 4, albedo 0.9, draft graph."""
-    volume = sphere_volume(24)
-    radius = 24 / 2 - 1
-    scene = medium_scene(volume, density_scale=4.0 / radius)
-    cache = precompute(scene, volume, "draft", CacheStore(tmp_path_factory.mktemp("sphere")))
-    return {"volume": volume, "scene": scene, "cache": cache, "radius": radius, "sigma": 4.0 / radius}
-
+from ..helpers import medium_scene, reference, render_march
 
 # ------------------------------------------------------------------ 1. counts
 
@@ -123,14 +82,6 @@ def test_homogeneous_sphere_matches_volpath_up_to_the_known_positive_bias(sphere
     # bench measured a bias of 1.13 side-lit: the image is too bright, never too dark.
     assert mae < 0.25 * ref.mean()
     assert 1.0 < ratio < 1.3
-
-
-@pytest.fixture(scope="module")
-def cloud(variant, tmp_path_factory):
-    volume = noise_volume(32, seed=7)
-    scene = medium_scene(volume, density_scale=1.0 / float(volume.density.max() * volume.voxel_size.max()))
-    cache = precompute(scene, volume, "draft", CacheStore(tmp_path_factory.mktemp("cloud")))
-    return {"volume": volume, "scene": scene, "cache": cache}
 
 
 def test_heterogeneous_cloud_matches_volpath_up_to_the_known_positive_bias(cloud):
@@ -223,6 +174,8 @@ def test_a_fixed_seed_gives_identical_caches_in_separate_stores(variant, tmp_pat
         (ga.counts.data, gb.counts.data),
         (a.radiance, b.radiance),
         (a.radiance_gather, b.radiance_gather),
+        (a.field.tau_light, b.field.tau_light),
+        (a.field.radiance_ms, b.field.radiance_ms),
     ]:
         assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes()
     # and what was written is what was built
@@ -234,13 +187,14 @@ def test_a_fixed_seed_gives_identical_caches_in_separate_stores(variant, tmp_pat
 # ------------------------------------------------------------------ 6. kernel reuse
 
 
-def test_moving_the_camera_launches_only_kernels_already_compiled(sphere):
+@pytest.mark.parametrize("estimator", ["gather", "field"])
+def test_moving_the_camera_launches_only_kernels_already_compiled(sphere, estimator):
     import drjit as dr
 
     from cloudgraph.integrators.graph import GraphRenderer
 
     volume, scene = sphere["volume"], sphere["scene"]
-    renderer = GraphRenderer(sphere["cache"], volume, scene, estimator="gather")
+    renderer = GraphRenderer(sphere["cache"], volume, scene, estimator=estimator)
     moved = scene.camera.model_copy(update={"eye": (30.0, 25.0, 45.0), "fov": 35.0})
 
     def jit_kernels(history):

@@ -1,0 +1,353 @@
+"""The radiance field: the cache baked onto a grid, for a noise-free camera stage (DESIGN.md).
+
+After transport, the in-scattered radiance of Eq. 4.24 is evaluated once on a grid aligned with
+the density grid, split as the ``gather`` estimator splits it:
+
+    L_in(x) = E exp(-tau_light(x)) / 4pi  +  L_ms(x)
+
+- single scattering, exact to the grid: ``tau_light`` is the optical depth from each grid point
+  to the light, by a deterministic midpoint march of the trilinear density in Dr.Jit (step
+  :data:`TAU_STEP` voxels). Optical depth, not transmittance, is stored: it is linear along the
+  light in a homogeneous medium, so trilinear interpolation keeps single scattering exact there,
+  where interpolating exp(-tau) would overestimate it;
+- everything after the first scattering, from the graph: L_ms(a) = sum_b C[a, b] albedo L'(b),
+  the node radiance one collision after the node (T L' with the ``radiance_gather`` that the
+  ``gather`` estimator looks up), evaluated at the grid points by Eq. 4.25. It is smooth, so it
+  lives on a grid :data:`MS_COARSEN` times coarser per axis.
+
+A camera render is then a deterministic ray march with two texture lookups per step (the
+``field`` estimator of the graph integrator, and the page's WebGL view). One file, the same bytes
+for both: a small JSON header and float16 arrays, gzip-compressed (:func:`encode`):
+
+    bytes 0..7     b"CGFIELD1"
+    bytes 8..11    uint32 LE, header length H
+    12..12+H       UTF-8 JSON header: format, version, radiance_key, unit_to_world (4x4),
+                   world_bbox, light {direction, irradiance}, albedo, step, arrays
+    then           arrays at header["arrays"][name]["offset"] (16-byte aligned), little-endian,
+                   C order, (nz, ny, nx[, 3]): x varies fastest; value = stored * scale
+
+Arrays: ``sigma_t`` (per world unit), ``tau_light``, ``radiance_ms`` (RGB, per-channel scale)
+and ``majorant`` (max sigma_t over blocks of :data:`BLOCK`^3 field voxels, dilated by one voxel:
+empty-space skipping). Grid values sit at texel centres, (i + 0.5) / n of the unit cube that
+``Volume.unit_to_world`` maps onto the medium box, and are interpolated trilinearly (clamped).
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+import struct
+import time
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+MAGIC = b"CGFIELD1"
+VERSION = 1
+#: Field grid points at most (the density grid's resolution up to this; coarser beyond, by one
+#: integer factor on every axis). 2^24 points: 64 MiB of float32 per scalar array in memory.
+MAX_POINTS = 1 << 24
+#: The multiple-scattering grid is this many times coarser per axis than the field grid.
+MS_COARSEN = 2
+#: Directions per point of the multiple-scattering gather, and its march step in field voxels.
+MS_DIRECTIONS = 32
+MS_STEP = 1.0
+#: The gather stops where this much light is left, and adds the rest at the last G seen.
+MS_TR_MIN = 1e-2
+#: Multiple-scattering grid points per device batch (times MS_DIRECTIONS rays).
+MS_CHUNK = 1 << 16
+#: Majorant blocks, field voxels a side.
+BLOCK = 8
+#: Light march step, in field voxels (midpoint rule).
+TAU_STEP = 0.25
+#: Optical depth where the light march stops: exp(-16) ~ 1e-7 of the light is left.
+TAU_MAX = 16.0
+
+
+@dataclass
+class RadianceField:
+    """A baked field (see the module docstring), float32 in memory, (nz, ny, nx[, 3]) arrays.
+
+    Attributes:
+        sigma_t: extinction per world unit at the field grid points.
+        tau_light: optical depth from each point to the light.
+        radiance_ms: (mz, my, mx, 3) in-scattered radiance after the first scattering.
+        majorant: (bz, by, bx) max sigma_t per block of BLOCK^3 field voxels.
+        meta: the header (without ``arrays``): unit_to_world, light, albedo, step, ...
+    """
+
+    sigma_t: np.ndarray
+    tau_light: np.ndarray
+    radiance_ms: np.ndarray
+    majorant: np.ndarray
+    meta: dict
+
+    def encode(self) -> bytes:
+        """The gzip-compressed binary layout (module docstring)."""
+        arrays = {
+            "sigma_t": self.sigma_t,
+            "tau_light": self.tau_light,
+            "radiance_ms": self.radiance_ms,
+            "majorant": self.majorant,
+        }
+        blobs, table, offset = [], {}, 0
+        for name, a in arrays.items():
+            a = np.asarray(a, np.float32)
+            peak = a.reshape(-1, a.shape[-1]).max(axis=0) if name == "radiance_ms" else a.max(initial=0.0)
+            scale = np.where(np.asarray(peak) > 0, peak, 1.0)
+            raw = np.ascontiguousarray(a / scale, "<f2").tobytes()
+            table[name] = {
+                "dtype": "float16",
+                "shape": list(a.shape),
+                "offset": offset,  # relative to the data section; made absolute below
+                "scale": np.asarray(scale, float).tolist(),
+            }
+            if name == "majorant":
+                table[name]["block"] = BLOCK
+            blobs.append(raw + b"\0" * (-len(raw) % 16))
+            offset += len(blobs[-1])
+        header = {"format": "cloudgraph-field", "version": VERSION, **self.meta, "arrays": table}
+        # Offsets are from the start of the body, and the header's length moves the data: grow
+        # the data's start until the header fits in front of it.
+        start = 0
+        while True:
+            text = json.dumps({**header, "arrays": _shifted(table, start)}).encode()
+            need = -(-(12 + len(text)) // 16) * 16
+            if need <= start:
+                break
+            start = need
+        head = MAGIC + struct.pack("<I", len(text)) + text
+        body = head + b" " * (start - len(head)) + b"".join(blobs)
+        return gzip.compress(body, compresslevel=6, mtime=0)
+
+    @classmethod
+    def decode(cls, data: bytes) -> RadianceField:
+        """Reads :meth:`encode`'s bytes (gzip-compressed or not)."""
+        if data[:2] == b"\x1f\x8b":
+            data = gzip.decompress(data)
+        if data[:8] != MAGIC:
+            raise ValueError("not a cloudgraph field (bad magic)")
+        (n,) = struct.unpack("<I", data[8:12])
+        header = json.loads(data[12 : 12 + n])
+        out = {}
+        for name, a in header.pop("arrays").items():
+            count = int(np.prod(a["shape"]))
+            raw = np.frombuffer(data, "<f2", count, a["offset"]).reshape(a["shape"])
+            out[name] = raw.astype(np.float32) * np.asarray(a["scale"], np.float32)
+        for k in ("format", "version"):
+            header.pop(k)
+        return cls(meta=header, **out)
+
+
+def _shifted(table: dict, start: int) -> dict:
+    return {k: {**v, "offset": v["offset"] + start} for k, v in table.items()}
+
+
+# ------------------------------------------------------------------ grids
+
+
+def field_shape(volume_shape) -> tuple[int, int, int]:
+    """(nx, ny, nz) of the field grid: the density grid's, or coarser by one integer factor
+    until at most :data:`MAX_POINTS` points."""
+    n = np.asarray(volume_shape, np.int64)
+    f = 1
+    while np.prod(-(-n // f)) > MAX_POINTS:
+        f += 1
+    return tuple(int(v) for v in -(-n // f))
+
+
+def unit_points(shape) -> np.ndarray:
+    """(nz*ny*nx, 3) unit-cube texel centres of a grid of (nx, ny, nz), in C order (x fastest)."""
+    nx, ny, nz = shape
+    z, y, x = np.meshgrid(
+        (np.arange(nz) + 0.5) / nz, (np.arange(ny) + 0.5) / ny, (np.arange(nx) + 0.5) / nx, indexing="ij"
+    )
+    return np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+
+
+def block_majorant(sigma_t: np.ndarray, block: int = BLOCK) -> np.ndarray:
+    """(bz, by, bx) max of sigma_t ((nz, ny, nx)) over blocks, dilated by one voxel first so that
+    trilinear interpolation inside a block never exceeds it."""
+    from scipy.ndimage import maximum_filter
+
+    dilated = maximum_filter(sigma_t, size=3, mode="nearest")
+    pad = [(0, -s % block) for s in dilated.shape]
+    d = np.pad(dilated, pad, mode="edge")
+    bz, by, bx = (s // block for s in d.shape)
+    return d.reshape(bz, block, by, block, bx, block).max(axis=(1, 3, 5))
+
+
+# ------------------------------------------------------------------ baking
+
+
+def bake_field(
+    volume,
+    density_scale: float,
+    graph,
+    radiance_gather: np.ndarray,
+    albedo,
+    light_dir,
+    irradiance,
+    node_radius: float,
+    radiance_key: str = "",
+) -> tuple[RadianceField, dict]:
+    """Bakes the field of a radiance cache (a variant must be set).
+
+    Args:
+        volume: the :class:`~cloudgraph.volume.Volume`.
+        graph: the :class:`~cloudgraph.graph.Graph` (positions, search ranges, counts).
+        radiance_gather: (N, 3) node radiance with one scattering event fewer (as ``gather``).
+        albedo, irradiance: (3,); light_dir: (3,) direction the light travels.
+        node_radius: r, world units (the Eq. 4.25 weight's floor).
+
+    Returns:
+        (field, stats): stats hold the bake's seconds per part.
+    """
+    from .integrators.graph import NodeGrid
+    from .tracing import DensityField
+
+    t_start = time.perf_counter()
+    medium = DensityField.from_volume(volume, density_scale)
+    u2w = np.asarray(volume.unit_to_world, float)
+    shape = field_shape(volume.shape)
+    nx, ny, nz = shape
+
+    def to_world(u: np.ndarray):
+        w = u @ u2w[:3, :3].T + u2w[:3, 3]
+        return mi.Point3f(*(w[:, i].astype(np.float32) for i in range(3)))
+
+    # sigma_t at the field points (the voxel values themselves when the grid is not coarsened)
+    p = to_world(unit_points(shape))
+    sigma_t = np.array(medium.sigma_t(p), np.float32).reshape(nz, ny, nx)
+
+    # Single scattering: optical depth to the light from every field point (Eq. 4.22 at a point,
+    # deterministic). Step in world units: TAU_STEP of the smallest field voxel.
+    t0 = time.perf_counter()
+    voxel = float((np.linalg.norm(u2w[:3, :3], axis=0) / np.asarray(shape)).min())
+    to_light = -np.asarray(light_dir, float) / np.linalg.norm(light_dir)
+    tau = _optical_depth(medium, p, mi.Vector3f(*(float(c) for c in to_light)), TAU_STEP * voxel)
+    tau_light = np.array(tau, np.float32).reshape(nz, ny, nx)
+    t_tau = time.perf_counter() - t0
+
+    # Multiple scattering, as ``gather`` computes it but on the grid: one more flight from the
+    # grid point, to p'', where the graph's albedo L' stands in for the rest (Eq. 4.25):
+    #   L_ms(x) = 1/4pi int_S2 int_0^inf T_r(x, x + t w) sigma_t(x + t w) G(x + t w) dt dw,
+    #   G = albedo L'_search (radiance_gather),
+    # with G baked on the field grid first (one node lookup per point), then K fixed directions
+    # per point (a spherical Fibonacci set, turned at random per point) marched in closed form.
+    t0 = time.perf_counter()
+    grid = NodeGrid.build(graph.positions, graph.search_radius, radiance_gather * np.asarray(albedo)[None, :])
+    G = grid.lookup(p, (0.05 * node_radius) ** 2, mi.Bool(True))
+    G = _fill_empty(
+        np.stack([np.array(c, np.float32) for c in (G.x, G.y, G.z)], axis=1).reshape(nz, ny, nx, 3)
+    )
+    G_tex = mi.Texture3f(mi.TensorXf(G), filter_mode=dr.FilterMode.Linear, wrap_mode=dr.WrapMode.Clamp)
+    ms_shape = tuple(-(-n // MS_COARSEN) for n in shape)
+    q = unit_points(ms_shape) @ u2w[:3, :3].T + u2w[:3, 3]
+    radiance_ms = np.concatenate(
+        [
+            _gather_ms(medium, G_tex, q[a : a + MS_CHUNK], MS_STEP * voxel, seed=a)
+            for a in range(0, len(q), MS_CHUNK)  # chunks bound the device memory, not a loop over points
+        ]
+    ).reshape(*ms_shape[::-1], 3)
+    t_ms = time.perf_counter() - t0
+
+    meta = {
+        "radiance_key": radiance_key,
+        "unit_to_world": u2w.tolist(),
+        "world_bbox": [v.tolist() for v in volume.world_bbox()],
+        "light": {
+            "direction": (-to_light).tolist(),
+            "irradiance": np.broadcast_to(np.asarray(irradiance, float), (3,)).tolist(),
+        },
+        "albedo": np.broadcast_to(np.asarray(albedo, float), (3,)).tolist(),
+        "step": 0.5 * voxel,
+    }
+    field = RadianceField(sigma_t, tau_light, radiance_ms, block_majorant(sigma_t), meta)
+    stats = {
+        "field_s": round(time.perf_counter() - t_start, 3),
+        "field_tau_s": round(t_tau, 3),
+        "field_ms_s": round(t_ms, 3),
+        "field_shape": list(shape),
+        "field_ms_shape": list(ms_shape),
+    }
+    return field, stats
+
+
+def _fill_empty(values: np.ndarray) -> np.ndarray:
+    """Grid points that no node's search range reaches take their nearest reached neighbour's
+    value, so that interpolation at the medium's edge never blends in a false zero."""
+    from scipy.ndimage import distance_transform_edt
+
+    empty = ~(values > 0).any(axis=-1)
+    if not empty.any() or empty.all():
+        return values
+    idx = distance_transform_edt(empty, return_distances=False, return_indices=True)
+    return values[tuple(idx)]
+
+
+@dr.syntax
+def _optical_depth(medium, p: mi.Point3f, w: mi.Vector3f, step: float) -> mi.Float:
+    """int_0^boundary sigma_t(p + s w) ds per point, midpoint rule, stopped at TAU_MAX."""
+    t, t_end = medium.box_interval(p, w)
+    tau = mi.Float(0.0)  # Optical depth accumulator
+    active = t < t_end
+    while dr.hint(active, label="light_march"):
+        dt = dr.minimum(step, t_end - t)
+        tau += medium.sigma_t(p + (t + 0.5 * dt) * w) * dt
+        t += dt
+        active &= (t < t_end) & (tau < TAU_MAX)
+    return dr.minimum(tau, TAU_MAX)
+
+
+def _gather_ms(medium, G_tex, points: np.ndarray, step: float, seed: int) -> np.ndarray:
+    """(M, 3) L_ms at (M, 3) world points: MS_DIRECTIONS flights each, averaged (see bake_field)."""
+    m, k = len(points), MS_DIRECTIONS
+    # Spherical Fibonacci directions, the same set for every point, in a random frame per point
+    i = np.arange(k) + 0.5
+    z = 1.0 - 2.0 * i / k
+    phi = np.pi * (1.0 + 5.0**0.5) * i
+    r = np.sqrt(1.0 - z * z)
+    fib = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1).astype(np.float32)
+    rng = mi.PCG32(m, initstate=seed, initseq=dr.arange(mi.UInt64, m))
+    frame = mi.Frame3f(mi.warp.square_to_uniform_sphere(mi.Point2f(rng.next_float32(), rng.next_float32())))
+    ray = dr.arange(mi.UInt32, m * k)
+    point, j = ray // k, ray % k
+    fr = dr.gather(mi.Frame3f, frame, point)
+    w = dr.gather(mi.Vector3f, mi.Vector3f(*(np.ascontiguousarray(fib[:, c]) for c in range(3))), j)
+    d = fr.to_world(w)
+    o = dr.gather(mi.Point3f, mi.Point3f(*(points[:, c].astype(np.float32) for c in range(3))), point)
+    L = _march_ms(medium, G_tex, o, d, step)
+    out = np.stack([np.array(c, np.float64) for c in (L.x, L.y, L.z)], axis=1)
+    return out.reshape(m, k, 3).mean(axis=1).astype(np.float32)
+
+
+@dr.syntax
+def _march_ms(medium, G_tex, o: mi.Point3f, d: mi.Vector3f, step: float) -> mi.Color3f:
+    """int T_r sigma_t G dt along each ray to the box boundary (trapezoid in optical depth)."""
+    t, t_end = medium.box_interval(o, d)
+
+    def at(t):
+        x = o + t * d
+        g = G_tex.eval(medium.world_to_unit @ mi.Point3f(x))
+        return medium.sigma_t(x), mi.Color3f(g[0], g[1], g[2])
+
+    L = mi.Color3f(0.0)  # Gathered radiance
+    Tr = mi.Float(1.0)  # Transmittance from the point
+    s0, G0 = at(t)
+    active = t < t_end
+    while dr.hint(active, label="ms_gather"):
+        dt = dr.minimum(step, t_end - t)
+        s1, G1 = at(t + dt)
+        dtau = 0.5 * (s0 + s1) * dt
+        a = dr.exp(-dtau)
+        w1 = dr.select(dtau > 1e-3, (1.0 - a * (1.0 + dtau)) / dr.maximum(dtau, 1e-3), 0.5 * dtau)
+        L += Tr * (G0 * (1.0 - a) + (G1 - G0) * w1)
+        Tr *= a
+        t += dt
+        s0, G0 = s1, G1
+        active &= (t < t_end) & (Tr > MS_TR_MIN)
+    # What is left past the cut-off, at the last value seen (0 where the ray left the medium)
+    return L + dr.select(t < t_end, Tr, 0.0) * G0
