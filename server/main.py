@@ -28,6 +28,11 @@ log = logging.getLogger("cloudgraph.api")
 WEB = Path(__file__).resolve().parents[1] / "web"
 
 
+def _field(loc) -> str:
+    """A field's name as answers write it: ``keyframes[1].eye``."""
+    return "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in loc).lstrip(".")
+
+
 def _message(err: RequestValidationError) -> str:
     parts = []
     for e in err.errors():
@@ -35,8 +40,12 @@ def _message(err: RequestValidationError) -> str:
             why, at = e.get("ctx", {}).get("error", "decode error"), e.get("loc", ())[-1]
             parts.append(f"the body is not valid JSON: {why} at character {at}")
             continue
-        loc = ".".join(str(p) for p in e.get("loc", ()) if p != "body") or "the request body"
-        parts.append(f"{loc}: {e.get('msg', '').removeprefix('Value error, ')}")
+        loc = _field(p for p in e.get("loc", ()) if p != "body")
+        msg = e.get("msg", "").removeprefix("Value error, ")
+        if not loc and e.get("type") == "value_error":  # a body-wide rule: its message names fields
+            parts.append(msg)
+            continue
+        parts.append(f"{loc or 'the request body'}: {msg}")
     return "; ".join(parts) or "invalid request"
 
 

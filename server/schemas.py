@@ -10,6 +10,8 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from cloudgraph.options import ESTIMATORS, INTEGRATORS, QUALITIES
 from cloudgraph.scene import CameraSpec, LightSpec, MediumSpec, Scene, VolumeSpec
 
+from .validation import first_non_finite
+
 # The API's enums come from the engine's tuples (one source of truth).
 Quality = Literal[QUALITIES]
 Integrator = Literal[INTEGRATORS]
@@ -17,7 +19,18 @@ Estimator = Literal[ESTIMATORS]
 
 
 class _Body(BaseModel):
+    """A request body: no unknown fields, and every number finite (checked on the raw input, so
+    that the answer names the field before any other rule looks at it)."""
+
     model_config = ConfigDict(extra="forbid")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _finite(cls, data):
+        found = first_non_finite(data)
+        if found is not None:
+            raise ValueError(f"{found[0]}: must be a finite number, got {found[1]}")
+        return data
 
 
 class CacheCreate(_Body):

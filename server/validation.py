@@ -33,20 +33,22 @@ MAX_DENSITY_SCALE = 1e6
 MIN_RADIUS = 1e-3
 
 
-def check_finite(data, where: str = "") -> None:
-    """Every number in a parsed body is finite (JSON parsers accept NaN, Infinity and 1e999).
-
-    Raises:
-        InputError: naming the first field that is not.
-    """
+def first_non_finite(data, where: str = "") -> tuple[str, float] | None:
+    """(field, value) of the first number in a raw body that is not finite (JSON parsers accept
+    NaN, Infinity and 1e999), or None. Fields are named as in answers: ``scene.camera.eye[0]``."""
     if isinstance(data, dict):
-        for k, v in data.items():
-            check_finite(v, f"{where}.{k}" if where else str(k))
+        items = ((f"{where}.{k}" if where else str(k), v) for k, v in data.items())
     elif isinstance(data, list | tuple):
-        for i, v in enumerate(data):
-            check_finite(v, f"{where}[{i}]")
+        items = ((f"{where}[{i}]", v) for i, v in enumerate(data))
     elif isinstance(data, float) and not math.isfinite(data):
-        raise InputError(where or "body", f"must be a finite number, got {data}")
+        return where or "body", data
+    else:
+        return None
+    for field, v in items:
+        found = first_non_finite(v, field)
+        if found is not None:
+            return found
+    return None
 
 
 def _vec(v, where: str, *, direction: bool = False) -> None:

@@ -24,7 +24,7 @@ from ..deps import QueueDep, RedisDep, SettingsDep, VolumesDep
 from ..errors import InputError
 from ..jobs import check_capacity, describe, enqueue, fetch, status_of
 from ..schemas import AnimationCreate, JobStatus
-from ..validation import MAX_COORD, MIN_RADIUS, check_camera, check_finite, check_scene
+from ..validation import MAX_COORD, MIN_RADIUS, check_camera, check_scene
 from .renders import precompute_for
 
 router = APIRouter(prefix="/animations", tags=["animations"])
@@ -84,7 +84,6 @@ def camera_path(body: AnimationCreate) -> list[CameraSpec]:
 def check_animation(body: AnimationCreate, settings, volumes) -> None:
     """The scene, the frame count, and every keyframe under the scene camera's limits (all of
     one image size: the frames make one video), or an orbit of bounded radius."""
-    check_finite(body.model_dump())
     if body.frames > settings.MAX_FRAMES:
         raise InputError("frames", f"{body.frames} is over the limit of {settings.MAX_FRAMES}")
     check_scene(body.scene, settings, volumes)

@@ -15,7 +15,7 @@ from cloudgraph_service.protocol import LOCK_S, PRECOMPUTE_JOB, cancel_key, lock
 from ..deps import QueueDep, RedisDep, SettingsDep, VolumesDep
 from ..jobs import cache_id, check_capacity, describe, enqueue, fetch, status_of
 from ..schemas import CacheCreate, JobStatus
-from ..validation import check_cache_parts, check_finite
+from ..validation import check_cache_parts
 
 router = APIRouter(prefix="/caches", tags=["caches"])
 CACHE_ID = re.compile(r"[0-9a-f]{32}")
@@ -26,7 +26,6 @@ IMMUTABLE = "public, max-age=31536000, immutable"
 def ensure_cache(body: CacheCreate, redis, queue, settings, volumes, prefix: str = "") -> tuple[str, Job]:
     """The precompute job of a cache, enqueued once: an existing live or finished job is reused.
     ``prefix`` names the fields as the request has them (``scene.`` for renders)."""
-    check_finite(body.model_dump())
     check_cache_parts(body.volume, body.medium, body.light, body.max_depth, settings, volumes, prefix)
     cid = cache_id(
         body.volume.model_dump(),

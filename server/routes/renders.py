@@ -14,7 +14,7 @@ from cloudgraph_service.protocol import RENDER_JOB, is_job_id, render_path
 from ..deps import QueueDep, RedisDep, SettingsDep, VolumesDep
 from ..jobs import await_job, check_capacity, describe, enqueue, fetch, status_of, worker_health
 from ..schemas import CacheCreate, JobStatus, RenderCreate
-from ..validation import check_finite, check_scene
+from ..validation import check_scene
 from .caches import ensure_cache
 
 router = APIRouter(prefix="/renders", tags=["renders"])
@@ -39,7 +39,6 @@ def _render(body: RenderCreate, redis, queue, settings, volumes):
     Returns:
         (job, ready): ready when the job will run without waiting on another.
     """
-    check_finite(body.model_dump())
     scene = body.scene
     check_scene(scene, settings, volumes)
     check_capacity(queue, settings)
