@@ -42,7 +42,7 @@ def make_field(shape=(24, 20, 28), unit_to_world=None, block=4, seed=1) -> dict:
     rad_scale = rad.reshape(-1, 3).max(axis=0) / 1000.0
     q = {
         "sigma_t": (sigma / sigma_scale).astype(np.float16),
-        "tau_light": tau.astype(np.float16),
+        "tau_light": (tau / 2.5).astype(np.float16),
         "radiance_ms": (rad / rad_scale).astype(np.float16),
     }
     # majorant: max over each block, dilated by one voxel
@@ -72,14 +72,14 @@ def make_field(shape=(24, 20, 28), unit_to_world=None, block=4, seed=1) -> dict:
         "step": float(voxel / 2),
         "arrays": {
             "sigma_t": {"dtype": "float16", "shape": list(shape), "scale": sigma_scale},
-            "tau_light": {"dtype": "float16", "shape": list(shape), "scale": 1},
+            "tau_light": {"dtype": "float16", "shape": list(shape), "scale": 2.5},
             "radiance_ms": {"dtype": "float16", "shape": [mz, my, mx, 3], "scale": rad_scale.tolist()},
             "majorant": {"dtype": "float16", "shape": [bz, by, bx], "scale": sigma_scale, "block": block},
         },
     }
     values = {
         "sigma_t": q["sigma_t"].astype(np.float32) * sigma_scale,
-        "tau_light": q["tau_light"].astype(np.float32),
+        "tau_light": q["tau_light"].astype(np.float32) * 2.5,
         "radiance_ms": q["radiance_ms"].astype(np.float32) * rad_scale.astype(np.float32),
     }
     return {"header": header, "raw": q, "values": values}

@@ -25,6 +25,7 @@ export class CachePanel {
     this.state = $("#cache-state");
     this.stats = $("#cache-stats");
     this.ready = new Map(); // key -> stats
+    this.ids = new Map(); // key -> cache id (for GET /v1/caches/{id}/field)
     this.running = null; // { key, jobId, controller }
     this.button.addEventListener("click", () => this.precompute());
     this.cancelButton.addEventListener("click", () => this.cancel());
@@ -32,6 +33,16 @@ export class CachePanel {
 
   isReadyFor(key) {
     return key != null && this.ready.has(key);
+  }
+
+  /** The cache id of a ready cache, else undefined. */
+  idFor(key) {
+    return this.ids.get(key);
+  }
+
+  /** The key being precomputed now, or null. */
+  runningKey() {
+    return this.running ? this.running.key : null;
   }
 
   /** The scene changed: says whether the cache of the new settings is ready. */
@@ -85,6 +96,7 @@ export class CachePanel {
     try {
       const { status, body } = await this.api.createCache(req.body, run.controller.signal);
       let stats = body.stats;
+      run.id = body.id;
       found = status === 200;
       if (!found) {
         run.jobId = jobIdOf(body.job);
@@ -97,6 +109,7 @@ export class CachePanel {
         stats = job.result && job.result.stats;
       }
       this.ready.set(run.key, stats || {});
+      this.ids.set(run.key, run.id);
     } catch (err) {
       if (isAbort(err)) return;
       if (/cancelled/.test(err.message)) {

@@ -1,7 +1,8 @@
 // The WebGL2 renderer of a radiance field: 3D textures on the GPU, one draw per frame, and a
 // read-back of an image at a given size for comparisons. Knows nothing of the DOM around it.
 
-import { FRAGMENT, VERTEX } from "./shaders.js";
+import { fragmentShader, VERTEX } from "./shaders.js";
+import { halfToFloat } from "./field.js";
 import { cross, normalize, sub } from "./camera.js";
 
 /** Why this browser cannot draw the real-time view, or "" when it can. */
@@ -43,24 +44,30 @@ export class GLView {
     });
     if (!gl) throw new Error(webgl2Missing(document.createElement("canvas")) || "WebGL2 is unavailable");
     this.gl = gl;
-    const program = gl.createProgram();
-    gl.attachShader(program, compile(gl, gl.VERTEX_SHADER, VERTEX));
-    gl.attachShader(program, compile(gl, gl.FRAGMENT_SHADER, FRAGMENT));
-    gl.linkProgram(program);
-    if (!gl.getProgramParameter(program, gl.LINK_STATUS) && !gl.isContextLost()) {
-      throw new Error(`the ray-march shader does not link: ${gl.getProgramInfoLog(program)}`);
-    }
-    this.program = program;
-    this.loc = {};
-    const n = gl.getProgramParameter(program, gl.ACTIVE_UNIFORMS);
-    for (let i = 0; i < n; i++) {
-      const name = gl.getActiveUniform(program, i).name;
-      this.loc[name] = gl.getUniformLocation(program, name);
-    }
+    this.programs = { exact: this.link(false), fast: this.link(true) };
     this.vao = gl.createVertexArray();
     this.textures = null;
     this.field = null;
     this.maxSize = gl.getParameter(gl.MAX_3D_TEXTURE_SIZE);
+  }
+
+  /** The ray-march program and its uniform locations. */
+  link(packed) {
+    const gl = this.gl;
+    const program = gl.createProgram();
+    gl.attachShader(program, compile(gl, gl.VERTEX_SHADER, VERTEX));
+    gl.attachShader(program, compile(gl, gl.FRAGMENT_SHADER, fragmentShader({ packed })));
+    gl.linkProgram(program);
+    if (!gl.getProgramParameter(program, gl.LINK_STATUS) && !gl.isContextLost()) {
+      throw new Error(`the ray-march shader does not link: ${gl.getProgramInfoLog(program)}`);
+    }
+    const loc = {};
+    const n = gl.getProgramParameter(program, gl.ACTIVE_UNIFORMS);
+    for (let i = 0; i < n; i++) {
+      const name = gl.getActiveUniform(program, i).name;
+      loc[name] = gl.getUniformLocation(program, name);
+    }
+    return { program, loc };
   }
 
   /**
@@ -78,11 +85,14 @@ export class GLView {
     return "";
   }
 
-  /** GPU bytes of a field's textures: RG16F density + tau, RGBA16F-padded radiance, R16F majorant. */
+  /**
+   * GPU bytes of a field's textures: RG16F density + tau, RGBA16F-padded radiance, R16F
+   * majorant, and the RGBA16F (sigma_t, L_in) texture of the moving camera.
+   */
   static textureBytes(field) {
     const count = (a) => a.shape[0] * a.shape[1] * a.shape[2];
     const { sigma_t, radiance_ms, majorant } = field.arrays;
-    return 4 * count(sigma_t) + 8 * count(radiance_ms) + 2 * count(majorant);
+    return 12 * count(sigma_t) + 8 * count(radiance_ms) + 2 * count(majorant);
   }
 
   /**
@@ -101,10 +111,6 @@ export class GLView {
       st[2 * i] = s[i];
       st[2 * i + 1] = tau[i];
     }
-    const tau1 = Number(tau_light.scale);
-    if (Math.abs(tau1 - 1) > 1e-6) {
-      throw new Error(`tau_light scale ${tau1} is not supported (1 expected)`);
-    }
     const make = (arr, internal, format, data, filter) => {
       const [nz, ny, nx] = arr.shape;
       const t = gl.createTexture();
@@ -118,10 +124,24 @@ export class GLView {
       }
       return t;
     };
+    const make32 = (arr, data) => {
+      const [nz, ny, nx] = arr.shape;
+      const t = gl.createTexture();
+      gl.bindTexture(gl.TEXTURE_3D, t);
+      gl.pixelStorei(gl.UNPACK_ALIGNMENT, 4);
+      gl.texImage3D(gl.TEXTURE_3D, 0, gl.RGBA16F, nx, ny, nz, 0, gl.RGBA, gl.FLOAT, data);
+      gl.texParameteri(gl.TEXTURE_3D, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
+      gl.texParameteri(gl.TEXTURE_3D, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
+      for (const w of [gl.TEXTURE_WRAP_S, gl.TEXTURE_WRAP_T, gl.TEXTURE_WRAP_R]) {
+        gl.texParameteri(gl.TEXTURE_3D, w, gl.CLAMP_TO_EDGE);
+      }
+      return t;
+    };
     const textures = {
       densTau: make(sigma_t, gl.RG16F, gl.RG, st, gl.LINEAR),
       rad: make(radiance_ms, gl.RGB16F, gl.RGB, radiance_ms.data, gl.LINEAR),
       maj: make(majorant, gl.R16F, gl.RED, majorant.data, gl.NEAREST),
+      packed: make32(sigma_t, packedField(field)),
     };
     const err = gl.getError();
     if (err !== gl.NO_ERROR && !gl.isContextLost()) {
@@ -138,6 +158,7 @@ export class GLView {
       worldToUnit: field.worldToUnit,
       step: field.step,
       sigmaScale: Number(sigma_t.scale),
+      tauScale: Number(tau_light.scale),
       majScale: Number(majorant.scale),
       radScale: radiance_ms.scale,
       direct: field.light.irradiance.map((e) => e / (4 * Math.PI)),
@@ -155,15 +176,15 @@ export class GLView {
    * Draws the field as seen by scene-spec camera ``cam`` into the current framebuffer at
    * width x height. exposure: stops; stepScale >= 1 lengthens the march step (while moving).
    */
-  draw(cam, width, height, { exposure = 0, stepScale = 1 } = {}) {
+  draw(cam, width, height, { exposure = 0, stepScale = 1, fast = false } = {}) {
     const gl = this.gl;
     const f = this.field;
     if (!f) return;
+    const { program, loc: L } = fast ? this.programs.fast : this.programs.exact;
     const { forward, right, up } = cameraBasis(cam);
     const tanX = Math.tan((cam.fov * Math.PI) / 360);
     gl.viewport(0, 0, width, height);
-    gl.useProgram(this.program);
-    const L = this.loc;
+    gl.useProgram(program);
     gl.uniform3fv(L.uEye, cam.eye);
     gl.uniform3fv(L.uForward, forward);
     gl.uniform3fv(L.uRight, right);
@@ -173,6 +194,7 @@ export class GLView {
     gl.uniformMatrix4fv(L.uWorldToUnit, true, f.worldToUnit);
     gl.uniform1f(L.uStep, f.step * stepScale);
     gl.uniform1f(L.uSigmaScale, f.sigmaScale);
+    gl.uniform1f(L.uTauScale, f.tauScale);
     gl.uniform3fv(L.uRadScale, f.radScale);
     gl.uniform3fv(L.uDirect, f.direct);
     gl.uniform3fv(L.uAlbedo, f.albedo);
@@ -180,11 +202,12 @@ export class GLView {
     gl.uniform3fv(L.uBlockCells, f.blockCells);
     gl.uniform3iv(L.uBlocks, f.blocks);
     const units = [
-      ["uDensTau", this.textures.densTau],
+      ["uDensTau", fast ? this.textures.packed : this.textures.densTau],
       ["uRad", this.textures.rad],
       ["uMaj", this.textures.maj],
     ];
     units.forEach(([name, tex], i) => {
+      if (!L[name]) return; // optimised away
       gl.activeTexture(gl.TEXTURE0 + i);
       gl.bindTexture(gl.TEXTURE_3D, tex);
       gl.uniform1i(L[name], i);
@@ -203,8 +226,9 @@ export class GLView {
     this.draw(cam, width, height, options);
   }
 
-  /** The field seen by ``cam`` at its width x height (full quality), as top-down ImageData. */
-  readImage(cam, { exposure = 0 } = {}) {
+  /** The field seen by ``cam`` at its width x height (full quality unless ``fast``), as
+   * top-down ImageData. */
+  readImage(cam, { exposure = 0, fast = false } = {}) {
     const gl = this.gl;
     const { width, height } = cam;
     const tex = gl.createTexture();
@@ -214,7 +238,7 @@ export class GLView {
     gl.bindFramebuffer(gl.FRAMEBUFFER, fbo);
     gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, tex, 0);
     try {
-      this.draw(cam, width, height, { exposure, stepScale: 1 });
+      this.draw(cam, width, height, { exposure, stepScale: 1, fast });
       const rows = new Uint8Array(width * height * 4);
       gl.readPixels(0, 0, width, height, gl.RGBA, gl.UNSIGNED_BYTE, rows);
       const out = new ImageData(width, height);
@@ -229,4 +253,70 @@ export class GLView {
       gl.deleteTexture(tex);
     }
   }
+}
+
+const HALF = new Float32Array(65536);
+for (let h = 0; h < 65536; h++) HALF[h] = halfToFloat(h);
+
+/** Trilinear weights that resample an axis of m texel centres at n texel centres. */
+function axisWeights(n, m) {
+  const i0 = new Int32Array(n);
+  const i1 = new Int32Array(n);
+  const w = new Float32Array(n);
+  for (let i = 0; i < n; i++) {
+    const x = Math.min(m - 1, Math.max(0, ((i + 0.5) * m) / n - 0.5));
+    i0[i] = Math.floor(x);
+    i1[i] = Math.min(m - 1, i0[i] + 1);
+    w[i] = x - i0[i];
+  }
+  return { i0, i1, w };
+}
+
+/**
+ * The moving camera's texture: per density voxel (sigma_t / scale, L_in r, g, b) with
+ * L_in = E exp(-tau_light) / 4pi + radiance_ms (resampled to the density grid). Float32 RGBA.
+ */
+export function packedField(field) {
+  const { sigma_t, tau_light, radiance_ms } = field.arrays;
+  const [nz, ny, nx] = sigma_t.shape;
+  const [mz, my, mx] = radiance_ms.shape;
+  const [ex, ey, ez] = field.light.irradiance.map((e) => e / (4 * Math.PI));
+  const [sr, sg, sb] = radiance_ms.scale;
+  const tauScale = Number(tau_light.scale);
+  const rad = radiance_ms.data;
+  const X = axisWeights(nx, mx);
+  const Y = axisWeights(ny, my);
+  const Z = axisWeights(nz, mz);
+  const out = new Float32Array(4 * nx * ny * nz);
+  const c = [0, 0, 0];
+  let v = 0;
+  for (let k = 0; k < nz; k++) {
+    const wz = Z.w[k];
+    const z0 = Z.i0[k] * my;
+    const z1 = Z.i1[k] * my;
+    for (let j = 0; j < ny; j++) {
+      const wy = Y.w[j];
+      const r00 = (z0 + Y.i0[j]) * mx;
+      const r01 = (z0 + Y.i1[j]) * mx;
+      const r10 = (z1 + Y.i0[j]) * mx;
+      const r11 = (z1 + Y.i1[j]) * mx;
+      for (let i = 0; i < nx; i++, v++) {
+        const wx = X.w[i];
+        const a = X.i0[i];
+        const b = X.i1[i];
+        for (let ch = 0; ch < 3; ch++) {
+          const at = (row, col) => HALF[rad[3 * (row + col) + ch]];
+          const y0 = (1 - wz) * ((1 - wx) * at(r00, a) + wx * at(r00, b)) + wz * ((1 - wx) * at(r10, a) + wx * at(r10, b));
+          const y1 = (1 - wz) * ((1 - wx) * at(r01, a) + wx * at(r01, b)) + wz * ((1 - wx) * at(r11, a) + wx * at(r11, b));
+          c[ch] = (1 - wy) * y0 + wy * y1;
+        }
+        const direct = Math.exp(-tauScale * HALF[tau_light.data[v]]);
+        out[4 * v] = HALF[sigma_t.data[v]];
+        out[4 * v + 1] = ex * direct + sr * c[0];
+        out[4 * v + 2] = ey * direct + sg * c[1];
+        out[4 * v + 3] = ez * direct + sb * c[2];
+      }
+    }
+  }
+  return out;
 }

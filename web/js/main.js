@@ -1,5 +1,7 @@
-// Wiring: the panels, the viewport and the API key, and the one rule that decides whether the
-// viewport may render (a volume, valid inputs, and a ready cache for the graph integrator).
+// Wiring: the panels, the viewport and the API key, and the rules that decide what the viewport
+// shows: the page's own WebGL2 view of the cache's radiance field when it can (graph, WebGL2, a
+// field that fits), else the server's progressive renders; and a light change that keeps the
+// old field drawn while the server relights the cache (the graph is reused).
 
 import { Api } from "./api.js";
 import { AnimationPanel } from "./animation.js";
@@ -7,7 +9,9 @@ import { CachePanel } from "./cache.js";
 import { OrbitCamera } from "./camera.js";
 import { ComparePanel } from "./compare.js";
 import { Controls } from "./controls.js";
-import { $, readNumber, setText } from "./dom.js";
+import { $, formatSeconds, readNumber, setText } from "./dom.js";
+import { RealtimeView } from "./realtime.js";
+import { RealtimeCompare } from "./rtcompare.js";
 import { ScenePanel } from "./scene.js";
 import { StatusArea } from "./status.js";
 import { Viewer } from "./viewer.js";
@@ -49,6 +53,32 @@ const scene = new ScenePanel({
   onChange: () => sceneChanged(),
 });
 
+const viewport = $("#viewport");
+const overlay = $("#view-overlay");
+const modeNote = $("#view-mode");
+const relightInfo = $("#relight-info");
+
+// The real-time view, unless this browser has no WebGL2 (then the server renders every frame).
+let realtime = null;
+let realtimeMissing = "";
+try {
+  realtime = new RealtimeView({
+    element: viewport,
+    canvas: $("#view-canvas"),
+    img: $("#view-img"),
+    info: $("#view-info"),
+    api,
+    status,
+    camera,
+    exposure: () => readNumber(exposure, { min: -20, max: 20 }),
+    buildRequest,
+  });
+} catch (err) {
+  realtimeMissing = err.message;
+}
+const fieldFailed = new Map(); // scene key -> why its field cannot be drawn here
+let relight = null; // { key, t0 } while the server relights for a new light
+
 const viewer = new Viewer({
   element: $("#viewport"),
   img: $("#view-img"),
@@ -74,6 +104,7 @@ const cache = new CachePanel({
 });
 
 new ComparePanel({ api, status, camera, buildRequest });
+new RealtimeCompare({ api, status, camera, buildRequest, realtime: () => (usingRealtime() ? realtime : null) });
 
 new AnimationPanel({
   api,
@@ -96,7 +127,8 @@ function showCamera() {
 
 function cameraMoved() {
   showCamera();
-  viewer.cameraMoved();
+  if (usingRealtime()) realtime.cameraMoved();
+  else viewer.cameraMoved();
 }
 
 new Controls($("#viewport"), camera, cameraMoved);
@@ -110,12 +142,81 @@ $("#view-integrator").addEventListener("change", (e) => {
   sceneChanged();
 });
 exposure.addEventListener("change", () => sceneChanged());
+$("#final-toggle").addEventListener("change", (e) => realtime && realtime.setFinalWanted(e.target.checked));
+
+function usingRealtime() {
+  return viewport.dataset.renderer === "webgl";
+}
+
+function showOverlay(text) {
+  setText(overlay, text);
+  overlay.hidden = !text;
+}
+
+/** Same volume, density and quality: the same graph, so a new light is only a relight. */
+function sameGraph(a, b) {
+  if (a == null || b == null) return false;
+  const [va, ma, , qa] = JSON.parse(a);
+  const [vb, mb, , qb] = JSON.parse(b);
+  return JSON.stringify(va) === JSON.stringify(vb) && ma.density_scale === mb.density_scale && qa === qb;
+}
+
+/** Whether the viewport draws the field itself for this scene key; shows why not. */
+function chooseRenderer(key) {
+  let why = "";
+  if (!realtime) why = `Real-time view unavailable: ${realtimeMissing}.`;
+  else if (viewer.integrator !== "graph") why = "volpath frames come from the server.";
+  else if (fieldFailed.has(key)) why = `Real-time view unavailable: ${fieldFailed.get(key)}.`;
+  const webgl = !why;
+  viewport.dataset.renderer = webgl ? "webgl" : "server";
+  setText(
+    modeNote,
+    webgl
+      ? "Real-time: this page draws the cache's radiance field (WebGL2); the server renders finals and comparisons."
+      : `${why} Showing the server's progressive renders instead.`,
+  );
+  modeNote.classList.toggle("warn", !webgl && viewer.integrator === "graph");
+  return webgl;
+}
+
+/** Downloads the field of the ready cache for ``key`` and draws it; falls back on failure. */
+function loadField(key) {
+  const id = cache.idFor(key);
+  if (!id) return;
+  showOverlay(realtime.hasField() ? "" : "Downloading the radiance field…");
+  realtime.load(id, key).then(
+    (seconds) => {
+      if (scene.key() !== key) return;
+      showOverlay("");
+      if (relight && relight.key === key) {
+        const took = (performance.now() - relight.t0) / 1000;
+        relightInfo.dataset.seconds = String(took);
+        setText(relightInfo, `Relit in ${formatSeconds(took)} (field download ${formatSeconds(seconds)}); now drawing the new light.`);
+        relight = null;
+      }
+      realtime.setActive(true);
+    },
+    (err) => {
+      if (err && err.name === "AbortError") return;
+      status.error(err, "Real-time view");
+      fieldFailed.set(key, err.message);
+      if (relight && relight.key === key) relight = null;
+      sceneChanged();
+    },
+  );
+}
 
 /** Anything but the camera changed: the cache's state, the viewport's permission to render. */
 function sceneChanged() {
   const key = scene.key();
   cache.sceneChanged(key);
   showCamera();
+  if (scene.volume() && key != null && chooseRenderer(key)) {
+    realtimeSceneChanged(key);
+    return;
+  }
+  if (realtime) realtime.setActive(false);
+  $("#view-img").hidden = false;
   if (!scene.volume()) {
     viewer.setEnabled(false, "Upload a volume (.vdb or .vol) or select one to start.");
   } else if (key == null) {
@@ -135,6 +236,34 @@ function sceneChanged() {
     viewer.setEnabled(true);
   }
   viewer.sceneChanged();
+}
+
+/** The real-time viewport's share of sceneChanged(). */
+function realtimeSceneChanged(key) {
+  viewer.setEnabled(false, "");
+  if (cache.isReadyFor(key)) {
+    if (realtime.fieldKey === key) {
+      showOverlay("");
+      realtime.setActive(true);
+    } else {
+      if (realtime.hasField() && sameGraph(key, realtime.fieldKey)) realtime.setActive(true);
+      loadField(key);
+    }
+  } else if (realtime.hasField() && sameGraph(key, realtime.fieldKey)) {
+    // A new light (or albedo) on the same graph: keep drawing the old field while the server
+    // relights; the new field replaces it when it arrives.
+    showOverlay("");
+    realtime.setActive(true);
+    if (cache.runningKey() !== key) {
+      relight = { key, t0: performance.now() };
+      delete relightInfo.dataset.seconds;
+      setText(relightInfo, "Relighting on the server (the graph is reused); drawing the previous light meanwhile…");
+      cache.precompute();
+    }
+  } else {
+    realtime.setActive(false);
+    showOverlay("Press Precompute to build the radiance cache for these settings (or switch the viewport to volpath).");
+  }
 }
 
 // --- the API key ---

@@ -1,9 +1,11 @@
 // GLSL ES 3.00 sources of the real-time view: a full-screen triangle and the ray march of the
-// radiance field, the same march as the server's `field` estimator (DESIGN.md, "The radiance
-// field"; thesis Eq. 4.24 integrated segment by segment in closed form):
+// radiance field, the march of the server's `field` estimator (cloudgraph/integrators/graph.py;
+// thesis Eq. 4.24 integrated segment by segment in closed form, DESIGN.md "The radiance field"):
 //   L_in(x) = E exp(-tau_light(x)) / 4pi + L_ms(x)
-//   per segment of length dt at p = o + (t + u dt) d:  a = exp(-sigma_t(p) dt)
-//   L += Tr (1 - a) albedo L_in(p);  Tr *= a;  stop when Tr < 1e-3
+//   per segment [t, t + dt]: sigma_t the mean of its end values, L_in linear in optical depth
+//   between its end values L0, L1, dtau = sigma_t dt:
+//     L += Tr albedo [L0 (1 - e^-dtau) + (L1 - L0) (1 - e^-dtau (1 + dtau)) / dtau];  Tr *= e^-dtau
+//   the first segment (1 - u) step long with one jitter u per pixel; stop when Tr < 1e-3
 // then display: clamp(L 2^exposure, 0, 1) through the sRGB transfer.
 
 export const VERTEX = `#version 300 es
@@ -16,12 +18,21 @@ void main() {
 
 export const MAX_STEPS = 4096;
 
-export const FRAGMENT = `#version 300 es
+/**
+ * The fragment shader. packed = false: the exact march, sigma_t and tau_light in one RG texture
+ * and radiance_ms in another, L_in formed per sample as the server forms it (two fetches a
+ * step). packed = true: one RGBA texture of (sigma_t, L_in) made in the page, one fetch a step,
+ * for frames while the camera moves (L_in interpolated instead of exp(-tau)).
+ */
+export function fragmentShader({ packed = false } = {}) {
+  return `#version 300 es
+#define PACKED ${packed ? 1 : 0}
 precision highp float;
 precision highp int;
 precision highp sampler3D;
 
-uniform sampler3D uDensTau;   // R: sigma_t / sigmaScale, G: tau_light (field grid, linear)
+uniform sampler3D uDensTau;   // R: sigma_t / sigmaScale, G: tau_light (field grid, linear);
+                              // PACKED: R as above, GBA: L_in
 uniform sampler3D uRad;       // RGB: radiance after the first scattering / radScale (linear)
 uniform sampler3D uMaj;       // R: majorant / sigmaScale per block (nearest, texelFetch)
 
@@ -34,6 +45,7 @@ uniform vec2 uSize;           // image size in pixels
 uniform mat4 uWorldToUnit;    // world -> unit cube [0,1]^3 of the field
 uniform float uStep;          // largest segment, world units
 uniform float uSigmaScale;    // sigma_t per world unit = texel * uSigmaScale
+uniform float uTauScale;      // tau_light = texel * uTauScale
 uniform vec3 uRadScale;       // radiance_ms = texel * uRadScale
 uniform vec3 uDirect;         // irradiance / 4pi (isotropic phase)
 uniform vec3 uAlbedo;
@@ -57,6 +69,17 @@ float srgb(float x) {
   return x <= 0.0031308 ? 12.92 * x : 1.055 * pow(x, 1.0 / 2.4) - 0.055;
 }
 
+// (sigma_t per world unit, L_in) at unit-cube point p.
+vec4 fieldAt(vec3 p) {
+#if PACKED
+  vec4 v = texture(uDensTau, p);
+  return vec4(v.r * uSigmaScale, v.gba);
+#else
+  vec2 st = texture(uDensTau, p).rg;
+  return vec4(st.r * uSigmaScale, uDirect * exp(-st.g * uTauScale) + texture(uRad, p).rgb * uRadScale);
+#endif
+}
+
 void main() {
   // Pinhole ray through the pixel centre; fov along the width, row 0 at the top.
   vec2 ndc = 2.0 * gl_FragCoord.xy / uSize - 1.0;
@@ -70,45 +93,42 @@ void main() {
   vec3 tb = (1.0 - ou) * inv;
   vec3 tlo = min(ta, tb);
   vec3 thi = max(ta, tb);
-  float t0 = max(max(max(tlo.x, tlo.y), tlo.z), 0.0);
-  float t1 = min(min(thi.x, thi.y), thi.z);
-  vec3 L = vec3(0.0);         // radiance accumulator
-  if (t1 > t0) {
-    float n = ceil((t1 - t0) / uStep);
-    float dt = (t1 - t0) / n;  // segments of equal length <= uStep
-    float u = jitter(uvec2(gl_FragCoord.xy));
-    float Tr = 1.0;            // transmittance from the eye
-    float k = 0.0;             // segment index
-    float tBlockEnd = -1.0;    // where the ray leaves the current majorant block
+  float t = max(max(max(tlo.x, tlo.y), tlo.z), 0.0);
+  float tEnd = min(min(thi.x, thi.y), thi.z);
+  vec3 L = vec3(0.0);           // radiance accumulator
+  if (tEnd > t) {
+    float Tr = 1.0;             // transmittance from the eye
+    float dt = (1.0 - jitter(uvec2(gl_FragCoord.xy))) * uStep;  // the first segment's length
+    vec4 f0 = fieldAt(ou + t * du);  // (sigma_t, L_in) at the segment's start
+    float tBlockEnd = -1.0;     // where the ray leaves the current majorant block
+    bool empty = false;         // whether that block holds no medium
     for (int i = 0; i < MAX_STEPS; i++) {
-      if (k >= n) break;
-      float t = t0 + (k + u) * dt;
-      vec3 p = ou + t * du;
       if (t >= tBlockEnd) {
         // Empty-space skipping: a block whose majorant is 0 holds no medium at all.
-        vec3 cell = clamp(floor(p * uBlockCells), vec3(0.0), vec3(uBlocks - 1));
-        vec3 lo = cell / uBlockCells;
-        vec3 hi = (cell + 1.0) / uBlockCells;
-        vec3 te = max((lo - ou) * inv, (hi - ou) * inv);
-        tBlockEnd = max(min(min(te.x, te.y), te.z), t);
-        if (texelFetch(uMaj, ivec3(cell), 0).r <= 0.0) {
-          k = max(k + 1.0, ceil((tBlockEnd - t0) / dt - u));
-          tBlockEnd = -1.0;
-          continue;
-        }
+        vec3 cell = clamp(floor((ou + t * du) * uBlockCells), vec3(0.0), vec3(uBlocks - 1));
+        vec3 te = max((cell / uBlockCells - ou) * inv, ((cell + 1.0) / uBlockCells - ou) * inv);
+        tBlockEnd = min(min(te.x, te.y), te.z);
+        empty = texelFetch(uMaj, ivec3(cell), 0).r <= 0.0;
       }
-      vec2 st = texture(uDensTau, p).rg;
-      if (st.r > 0.0) {
-        float a = exp(-st.r * uSigmaScale * dt);
-        vec3 Lin = uDirect * exp(-st.g) + texture(uRad, p).rgb * uRadScale;
-        L += Tr * (1.0 - a) * uAlbedo * Lin;
-        Tr *= a;
-        if (Tr < TR_MIN) break;
+      float seg = empty ? max(tBlockEnd - t, 0.0) + 1e-3 * uStep : dt;
+      seg = min(seg, tEnd - t);
+      vec4 f1 = fieldAt(ou + (t + seg) * du);
+      if (!empty) {
+        // One segment in closed form (exponential integrator)
+        float dtau = 0.5 * (f0.x + f1.x) * seg;
+        float segTr = exp(-dtau);
+        float w1 = dtau > 1e-3 ? (1.0 - segTr * (1.0 + dtau)) / dtau : 0.5 * dtau;
+        L += Tr * uAlbedo * (f0.yzw * (1.0 - segTr) + (f1.yzw - f0.yzw) * w1);
+        Tr *= segTr;
+        dt = uStep;
       }
-      k += 1.0;
+      t += seg;
+      f0 = f1;
+      if (t >= tEnd || Tr < TR_MIN) break;
     }
   }
   vec3 x = clamp(L * uGain, 0.0, 1.0);
   outColor = vec4(srgb(x.r), srgb(x.g), srgb(x.b), 1.0);
 }
 `;
+}

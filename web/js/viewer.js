@@ -207,6 +207,7 @@ export class Viewer {
     const final = req.level === LEVELS[integrator].length - 1 && req.pass === passes - 1;
     this.shown = { version: req.version, level: req.level, pass: req.pass, final };
     this.frames++;
+    this.element.dataset.frames = String(this.frames);
     Object.assign(this.img.dataset, {
       level: String(req.level),
       pass: String(req.pass),
