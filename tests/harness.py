@@ -115,10 +115,10 @@ class Service:
             stdout=self._log("api"),
             stderr=subprocess.STDOUT,
         )
-        wait_until(lambda: _get_ok(f"{self.url}/healthz"), 30, "the API did not start")
+        wait_until(lambda: get_ok(f"{self.url}/healthz"), 30, "the API did not start")
 
     def wait_ready(self, timeout: float = 60) -> None:
-        wait_until(lambda: _get_ok(f"{self.url}/readyz"), timeout, "no worker became ready")
+        wait_until(lambda: get_ok(f"{self.url}/readyz"), timeout, "no worker became ready")
 
     def stop(self) -> None:
         for p in [self.api, *self.workers, self.redis]:
@@ -178,7 +178,7 @@ def _ping(port: int) -> bool:
         return False
 
 
-def _get_ok(url: str) -> bool:
+def get_ok(url: str) -> bool:
     try:
         return httpx.get(url, timeout=2).status_code == 200
     except httpx.HTTPError:

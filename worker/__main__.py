@@ -20,7 +20,7 @@ import time
 import uuid
 
 from redis import Redis
-from rq import Queue
+from rq import Queue, Worker
 
 from cloudgraph_service.protocol import (
     KILL_GRACE_S,
@@ -46,11 +46,12 @@ class Supervisor:
         self.queue = Queue(settings.QUEUE, connection=self.redis)
         self.running = Running(self.ctx)
         self.child = None
+        self.name = ""
         self.stopping = False
 
     def start_child(self) -> None:
         self.running.clear()
-        name = f"{socket.gethostname()}.{os.getpid()}.{uuid.uuid4().hex[:6]}"
+        self.name = name = f"{socket.gethostname()}.{os.getpid()}.{uuid.uuid4().hex[:6]}"
         self.child = self.ctx.Process(target=run, args=(self.running, name), name="cloudgraph-worker")
         self.child.start()
         log.info("worker process %s started (%s)", self.child.pid, name)
@@ -61,6 +62,19 @@ class Supervisor:
     def kill_child(self) -> None:
         self.child.kill()
         self.child.join(10)
+        self.forget_child()
+
+    def forget_child(self) -> None:
+        """Takes a dead worker process out of RQ's registry at once (else it would look alive
+        until its heartbeat expired)."""
+        try:
+            worker = Worker.find_by_key(
+                Worker.redis_worker_namespace_prefix + self.name, connection=self.redis
+            )
+            if worker is not None:
+                worker.register_death()
+        except Exception:
+            log.exception("could not unregister worker %s", self.name)
 
     def check(self) -> None:
         """One look at the worker process: past its budget, or dead."""
@@ -74,6 +88,7 @@ class Supervisor:
                     log.info("job %s put back in the queue (%s retries left)", job_id, job.retries_left)
             else:
                 log.error("worker process %s ended (exit %s)", self.child.pid, code)
+            self.forget_child()
             self.start_child()
             return
         if job_id and deadline and time.time() > deadline + KILL_GRACE_S:

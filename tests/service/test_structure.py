@@ -4,12 +4,25 @@ worker/ share only cloudgraph_service, and the settings are honoured by both."""
 from __future__ import annotations
 
 import ast
+import os
+import signal
 import subprocess
 import sys
 
 from cloudgraph_service.settings import Settings
 
-from ..harness import FOG, ROOT, cache_of, fog_scene, start_service, upload, wait_job
+from ..harness import (
+    FOG,
+    ROOT,
+    cache_of,
+    fog_scene,
+    free_port,
+    get_ok,
+    start_service,
+    upload,
+    wait_job,
+    wait_until,
+)
 
 
 def test_the_api_process_loads_neither_mitsuba_nor_drjit_nor_the_worker():
@@ -62,3 +75,39 @@ def test_the_cache_dir_setting_is_honoured_by_the_service(tmp_path, monkeypatch)
             assert field.status_code == 200, field.text
     finally:
         s.stop()
+
+
+def _listening(port: int) -> set[str]:
+    """Local addresses (hex, as /proc/net/tcp writes them) listening on ``port``."""
+    found = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        with open(table) as f:
+            for line in f.readlines()[1:]:
+                local, state = line.split()[1], line.split()[3]
+                addr, _, hexport = local.rpartition(":")
+                if state == "0A" and int(hexport, 16) == port:
+                    found.add(addr)
+    return found
+
+
+def test_make_run_listens_on_localhost_only_unless_told(tmp_path):
+    port, redis_port = free_port(), free_port()
+    env = {
+        **os.environ,
+        "PORT": str(port),
+        "REDIS_PORT": str(redis_port),
+        "WORKERS": "0",
+        "CLOUDGRAPH_DATA_DIR": str(tmp_path / "data"),
+    }
+    env.pop("HOST", None)
+    proc = subprocess.Popen(
+        [str(ROOT / "bin" / "run-service")], cwd=ROOT, env=env, start_new_session=True,
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    try:
+        wait_until(lambda: get_ok(f"http://127.0.0.1:{port}/healthz"), 60, "make run did not start")
+        assert _listening(port) == {"0100007F"}  # 127.0.0.1, nothing else
+        assert _listening(redis_port) == {"0100007F"}
+    finally:
+        os.killpg(proc.pid, signal.SIGTERM)
+        proc.wait(20)
