@@ -4,6 +4,11 @@ Per scene and camera: precompute stage times, sizes, one graph frame, its errors
 volpath reference (thesis Eq. 5.1), and the time volpath needs to reach the same MAE (spp
 doubled until it does, time interpolated in log-log), with Russian roulette on and off, the
 faster one counting. References are rendered once and kept under ``bench/reference-cache/``.
+
+Beside it: the converged error of ``gather`` (1024 spp, so bias and not noise: binned relMAE and
+mean ratio), and the ``field`` rows: one-sample frames at 64^2 and 256^2, their error and
+equal-error speed-up, one volpath sample per pixel at 256^2 for scale, bake time and field
+bytes, and the time of a relight (a new light on the same graph) beside the precompute's.
 """
 
 from __future__ import annotations
@@ -16,12 +21,13 @@ import platform
 import resource
 import time
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
 from .cache import CacheStore
-from .metrics import compare
+from .metrics import bias_metrics, compare
 from .render import render_volpath
 from .scene import Scene, parse_scene
 from .volume import Volume, load_volume, noise_volume, sphere_volume
@@ -84,6 +90,8 @@ def _scene(bs: BenchScene, camera: dict, albedo: float, spp: int, seed: int) -> 
 
 
 LIGHT = np.array([0.55, -0.25, -0.8]) / np.linalg.norm([0.55, -0.25, -0.8])
+#: The light of the relight measurement: the same graph, lit from elsewhere.
+RELIGHT = np.array([-0.3, -0.9, 0.3]) / np.linalg.norm([-0.3, -0.9, 0.3])
 
 
 def reference(bs: BenchScene, scene: Scene, spp: int, cache_dir: Path) -> np.ndarray:
@@ -144,6 +152,44 @@ def volpath_equal_error(
     }
 
 
+def timed_frames(render, repeats: int = 3) -> tuple[float, np.ndarray]:
+    """Median seconds of ``render(seed)`` over warm repeats (one call first compiles), and the
+    last image."""
+    render(0)
+    times = []
+    for seed in range(1, repeats + 1):
+        t0 = time.perf_counter()
+        image = render(seed)
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times)), image
+
+
+def field_row(bs: BenchScene, scene: Scene, renderer, ref: np.ndarray, ref_spp: int, cam256: dict) -> dict:
+    """The ``field`` estimator's figures for one scene and camera (issue 8)."""
+    from .scene import CameraSpec
+
+    s64, image = timed_frames(lambda seed: renderer.render(scene.camera, 1, seed, "field"))
+    cam = CameraSpec(**cam256)
+    s256, _ = timed_frames(lambda seed: renderer.render(cam, 1, seed, "field"))
+    big = scene.model_copy(update={"camera": cam, "render": scene.render.model_copy(update={"spp": 1})})
+    vp1_256, _ = timed_frames(lambda seed: render_volpath(big, bs.volume), repeats=1)
+    err = compare(image, ref)
+    vp = [volpath_equal_error(bs, scene, ref, err["MAE"], rr, ref_spp // 4) for rr in (False, True)]
+    best = min(vp, key=lambda r: r["seconds"])
+    return {
+        "field_frame_64_s": round(s64, 5),
+        "field_frame_256_s": round(s256, 5),
+        "volpath_1spp_256_s": round(vp1_256, 4),
+        "field_vs_volpath_1spp": round(vp1_256 / s256, 1),
+        "field_MAE": err["MAE"],
+        "field_MAE_pct": 100 * err["MAE"] / max(err["ref_mean"], 1e-12),
+        **{"field_" + k: v for k, v in bias_metrics(image, ref).items()},
+        "field_volpath_equal_error_s": round(best["seconds"], 4),
+        "field_volpath_extrapolated": best["extrapolated"],
+        "field_speedup": round(best["seconds"] / s64, 1),
+    }
+
+
 def reference_noise(volpath_run: dict, ref_spp: int) -> float:
     """Estimated MAE of the reference itself against the truth, from volpath's last sweep point:
     independent noise at s and R spp gives MAE(s vs R) = c sqrt(1/s + 1/R), the reference's own c / sqrt(R).
@@ -151,6 +197,10 @@ def reference_noise(volpath_run: dict, ref_spp: int) -> float:
     last = volpath_run["trace"][-1]
     c = last["MAE"] / np.sqrt(1.0 / last["spp"] + 1.0 / ref_spp)
     return float(c / np.sqrt(ref_spp))
+
+
+#: Samples per pixel of the converged graph image (bias, not noise; BENCHMARK.md).
+CONVERGED_SPP = 1024
 
 
 def run_bench(
@@ -176,29 +226,34 @@ def run_bench(
     store = CacheStore(out_dir.parent / "cache")
     rows = []
     for bs in bench_scenes(names):
+        relight = None  # seconds of a relight, measured once per scene
         for albedo in albedos:
-            for cam_name, camera in cameras(bs.volume, LIGHT, size).items():
+            cams, cams256 = cameras(bs.volume, LIGHT, size), cameras(bs.volume, LIGHT, 256)
+            for cam_name, camera in cams.items():
                 scene = _scene(bs, camera, albedo, graph_spp, seed=0)
                 t0 = time.perf_counter()
                 cache = precompute(scene, bs.volume, quality, store)
                 pre_s = time.perf_counter() - t0
+                if relight is None:
+                    lit = scene.model_copy(
+                        update={"light": scene.light.model_copy(update={"direction": tuple(RELIGHT)})}
+                    )
+                    t0 = time.perf_counter()
+                    relit = precompute(lit, bs.volume, quality, store)
+                    relight = {"relight_s": round(time.perf_counter() - t0, 3)}
+                    relight["relight_graph_reused"] = relit.stats["graph_reused"]
                 rss_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
                 renderer = GraphRenderer(cache, bs.volume, scene, estimator)
-                renderer.render(scene.camera, graph_spp, seed=0)  # compile, then time warm frames
-                times = []
-                for seed in (1, 2, 3):
-                    t1 = time.perf_counter()
-                    image = renderer.render(scene.camera, graph_spp, seed=seed)
-                    times.append(time.perf_counter() - t1)
-                frame_s = float(np.median(times))
+                frame_s, image = timed_frames(partial(renderer.render, scene.camera, graph_spp))
                 ref = reference(bs, scene, ref_spp, out_dir.parent / "reference-cache")
                 err = compare(image, ref)
                 vp = [
                     volpath_equal_error(bs, scene, ref, err["MAE"], rr, ref_spp // 4) for rr in (False, True)
                 ]
                 best = min(vp, key=lambda r: r["seconds"])
+                converged = renderer.render(scene.camera, CONVERGED_SPP, 1)
                 s = cache.stats
-                build_total = s["build_s"] + s["lighting_s"] + s["transport_s"]
+                build_total = s["build_s"] + s["lighting_s"] + s["transport_s"] + s.get("field_s", 0.0)
                 gain = best["seconds"] - frame_s
                 rows.append(
                     {
@@ -211,10 +266,14 @@ def run_bench(
                         "build_s": s["build_s"],
                         "lighting_s": s["lighting_s"],
                         "transport_s": s["transport_s"],
+                        "field_s": s.get("field_s"),
+                        "precompute_s": round(build_total, 3),
                         "precompute_wall_s": round(pre_s, 3),
+                        **(relight or {}),
                         "nodes": s["nodes"],
                         "edges": s["edges"],
                         "cache_MB": round((s["graph_bytes"] + s["radiance_bytes"]) / 2**20, 2),
+                        "field_MB": round(s["field_bytes"] / 2**20, 3),
                         "peak_rss_MB": round(rss_mb, 1),
                         "graph_spp": graph_spp,
                         "estimator": estimator,
@@ -230,6 +289,8 @@ def run_bench(
                         "volpath_extrapolated": best["extrapolated"],
                         "speedup": round(best["seconds"] / frame_s, 2),
                         "break_even_frames": round(build_total / gain, 2) if gain > 0 else None,
+                        **{"converged_" + k: v for k, v in bias_metrics(converged, ref).items()},
+                        **field_row(bs, scene, renderer, ref, ref_spp, cams256[cam_name]),
                         "volpath_trace": vp,
                     }
                 )
@@ -255,6 +316,8 @@ COLUMNS = [
     "scene",
     "camera",
     "albedo",
+    "precompute_s",
+    "relight_s",
     "nodes",
     "edges",
     "cache_MB",
@@ -273,6 +336,26 @@ COLUMNS = [
     "volpath_equal_error_s",
     "speedup",
     "break_even_frames",
+    "converged_binned_relMAE",
+    "converged_mean_ratio",
+]
+
+#: The field estimator's table (issue 8).
+FIELD_COLUMNS = [
+    "scene",
+    "camera",
+    "albedo",
+    "field_s",
+    "field_MB",
+    "field_frame_64_s",
+    "field_frame_256_s",
+    "volpath_1spp_256_s",
+    "field_vs_volpath_1spp",
+    "field_MAE_pct",
+    "field_binned_relMAE",
+    "field_mean_ratio",
+    "field_volpath_equal_error_s",
+    "field_speedup",
 ]
 
 
@@ -280,8 +363,13 @@ def _fmt(v) -> str:
     return f"{v:.4g}" if isinstance(v, float) else str(v)
 
 
-def _row_md(row: dict) -> str:
-    return "| " + " | ".join(_fmt(row[c]) for c in COLUMNS) + " |"
+def _row_md(row: dict, columns: list[str] = COLUMNS) -> str:
+    return "| " + " | ".join(_fmt(row.get(c)) for c in columns) + " |"
+
+
+def _table(rows: list[dict], columns: list[str]) -> str:
+    head = "| " + " | ".join(columns) + " |\n|" + "---|" * len(columns) + "\n"
+    return head + "\n".join(_row_md(r, columns) for r in rows) + "\n"
 
 
 def markdown(result: dict) -> str:
@@ -292,16 +380,8 @@ def markdown(result: dict) -> str:
         f"variant {m['variant']}; quality {result['quality']}; reference volpath "
         f"{result['reference_spp']} spp, RR off.\n\n"
     )
-    return (
-        head
-        + "| "
-        + " | ".join(COLUMNS)
-        + " |\n|"
-        + "---|" * len(COLUMNS)
-        + "\n"
-        + "\n".join(_row_md(r) for r in result["rows"])
-        + "\n"
-    )
+    field = "\n## field estimator\n\n" + _table(result["rows"], FIELD_COLUMNS)
+    return head + _table(result["rows"], COLUMNS) + field
 
 
 def machine() -> dict:

@@ -26,7 +26,7 @@ from .volume import Volume
 log = logging.getLogger(__name__)
 
 #: Lighting parameters that enter the radiance key.
-LIGHTING = {"disk_samples": 16, "tol": 1e-5}
+LIGHTING = {"disk_samples": 16, "tol": 1e-5, "transport": "krylov"}
 
 
 @dataclass
@@ -117,8 +117,15 @@ def precompute(
         progress("transport", 0.85)
         t0 = time.perf_counter()
         C, albedo, depth = graph.collision_matrix(), scene.medium.albedo_rgb(), scene.render.max_depth
-        L, iterations = transport(C, L_d, albedo, depth, LIGHTING["tol"])
-        L_gather = L if depth < 0 else transport(C, L_d, albedo, depth - 1, LIGHTING["tol"])[0]
+
+        def still_wanted():  # progress() raises when the job was cancelled
+            progress("transport", 0.85)
+
+        L, iterations = transport(C, L_d, albedo, depth, LIGHTING["tol"], cancelled=still_wanted)
+        if depth < 0:
+            L_gather = L
+        else:
+            L_gather = transport(C, L_d, albedo, depth - 1, LIGHTING["tol"], cancelled=still_wanted)[0]
         t_transport = time.perf_counter() - t0
         radiance, radiance_gather = L.astype(np.float32), L_gather.astype(np.float32)
         rstats = {

@@ -12,6 +12,7 @@ import pytest
 
 from cloudgraph.cache import CacheStore
 from cloudgraph.field import MAGIC, RadianceField
+from cloudgraph.metrics import bias_metrics, binned
 from cloudgraph.precompute import precompute
 
 from ..helpers import LIGHT, box_interval, cube_volume, medium_scene, pixel_rays, reference
@@ -23,15 +24,9 @@ def renderer(cache, volume, scene):
     return GraphRenderer(cache, volume, scene)
 
 
-def binned(image: np.ndarray, k: int = 4) -> np.ndarray:
-    h, w = image.shape[0] // k * k, image.shape[1] // k * k
-    return image[:h, :w].reshape(h // k, k, w // k, k, -1).mean(axis=(1, 3))
-
-
 def rel_mae(image: np.ndarray, ref: np.ndarray) -> float:
     """Relative MAE of 4x4-binned images: bias shows, per-pixel noise mostly does not."""
-    a, b = binned(image), binned(ref)
-    return float(np.abs(a - b).mean() / b.mean())
+    return bias_metrics(image, ref)["binned_relMAE"]
 
 
 # ------------------------------------------------------------------ single scattering
