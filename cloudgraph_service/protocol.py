@@ -38,6 +38,7 @@ RESULT_TTL_S = 7 * 24 * 3600  # finished and failed jobs are kept this long
 CANCEL_TTL_S = 24 * 3600  # a cancel flag outlives any job it can stop
 HEARTBEAT_GRACE_S = 15  # a worker is alive while its heartbeat is younger than HEARTBEAT_S + this
 KILL_GRACE_S = 5  # past its budget by this much, a job's worker process is killed
+CANCEL_GRACE_S = 10  # a cancelled job still running this long after is stopped by force
 LOCK_S = 30  # one request at a time per cache id
 
 # ------------------------------------------------------------------------------ ids, files
@@ -149,22 +150,26 @@ def sweep_deferred(queue: Queue) -> int:
     return n
 
 
-def fail_for_good(job: Job, message: str) -> None:
-    """Marks a started job failed with ``message`` (no retry, no restart brings it back), takes it
-    out of the started registry, and ends the jobs that wait on it."""
+def fail_for_good(job: Job, message: str, cancelled: bool = False) -> None:
+    """Ends a started job whose worker process was killed: failed with ``message`` (or stopped,
+    when a client had cancelled it), never retried, so no restart brings it back. It leaves the
+    started registry, and the jobs that wait on it end too."""
     from rq.job_lifecycle import record_job_failure
     from rq.utils import now
 
-    job.meta.update({"error": message, "stage": "failed"})
+    job.meta.update({"error": message, "stage": "canceled" if cancelled else "failed"})
     job.save_meta()
     job.retries_left = 0
     with job.connection.pipeline() as pipe:
         job.started_job_registry.remove_executions(job, pipeline=pipe)
         job.ended_at = job.ended_at or now()
         record_job_failure(job, message, pipe)
+        if cancelled:
+            job.set_status(JobStatus.STOPPED, pipeline=pipe)
         job.save(pipeline=pipe, include_meta=False)
         pipe.execute()
-    end_dependents(job, f"it waited on job {job.id}, which failed: {message}", failed=True)
+    why = "was cancelled" if cancelled else f"failed: {message}"
+    end_dependents(job, f"it waited on job {job.id}, which {why}", failed=not cancelled)
 
 
 def requeue_after_death(job: Job) -> bool:

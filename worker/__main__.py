@@ -4,7 +4,8 @@ to its budget.
 The worker process runs jobs in-process, so its caches and compiled kernels stay warm. Native
 code (a Dr.Jit kernel, a long sparse product) cannot be interrupted from inside, so this
 supervisor watches from outside: a job still running ``KILL_GRACE_S`` past its budget has its
-worker process killed, and is failed for good (no restart brings it back); a worker process that
+worker process killed, and is failed for good (no restart brings it back); so has a job still
+running ``CANCEL_GRACE_S`` after a client cancelled it (it ends canceled); a worker process that
 dies on its own has its job put back, up to ``JOB_RETRIES`` times. Either way a fresh worker
 process then takes the next job. SIGTERM or SIGINT stops both.
 """
@@ -23,7 +24,9 @@ from redis import Redis
 from rq import Queue, Worker
 
 from cloudgraph_service.protocol import (
+    CANCEL_GRACE_S,
     KILL_GRACE_S,
+    cancel_key,
     fail_for_good,
     fetch,
     requeue_after_death,
@@ -48,6 +51,7 @@ class Supervisor:
         self.child = None
         self.name = ""
         self.stopping = False
+        self.cancelled: tuple[str, float] | None = None  # (job id, when its cancel was first seen)
 
     def start_child(self) -> None:
         self.running.clear()
@@ -91,6 +95,18 @@ class Supervisor:
             self.forget_child()
             self.start_child()
             return
+        if job_id and self.redis.exists(cancel_key(job_id)):
+            if self.cancelled is None or self.cancelled[0] != job_id:
+                self.cancelled = (job_id, time.monotonic())
+            elif time.monotonic() - self.cancelled[1] > CANCEL_GRACE_S:
+                log.error("job %s was cancelled %d s ago and still runs: killing worker process %s",
+                          job_id, CANCEL_GRACE_S, self.child.pid)  # fmt: skip
+                self.kill_child()
+                job = fetch(self.redis, job_id)
+                if job is not None:
+                    fail_for_good(job, "cancelled by a client", cancelled=True)
+                self.start_child()
+                return
         if job_id and deadline and time.time() > deadline + KILL_GRACE_S:
             log.error(
                 "job %s ran past its budget of %.0f s: killing worker process %s",

@@ -242,6 +242,20 @@ def test_a_job_past_its_budget_is_stopped_and_failed_for_good_and_the_worker_goe
             assert end["status"] == "failed" and end["error"] == "stopped: it ran past its time budget of 8 s"
             assert len(rq_job(s, job).results()) == 1
             assert c.get("/readyz").status_code == 200
+
+            # a cancelled job that never reaches a progress report is stopped by force too
+            stuck = _enqueue(s, "tests.harness.stuck_forever", 600)
+            wait_until(lambda: stuck.get_status() == JobStatus.STARTED, 60, "the stuck job never started")
+            r = c.post(f"/v1/jobs/{stuck.id}/cancel")
+            assert r.status_code == 200 and r.json()["status"] == "canceled", r.text
+            t0 = time.monotonic()
+            wait_until(lambda: stuck.get_status() == JobStatus.STOPPED, 30, "the cancelled job still runs")
+            assert time.monotonic() - t0 < 10 + 5
+            end = c.get(f"/v1/jobs/{stuck.id}").json()
+            assert end["status"] == "canceled" and end["error"] == "cancelled by a client", end
+            s.wait_ready(60)
+            r = c.post("/v1/renders", json={"scene": fog_scene(vid, 8), "integrator": "volpath"})
+            assert r.status_code == 200, r.text
         no_server_errors(s)
     finally:
         s.stop()
