@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .cache import CacheStore, graph_key, radiance_key, volume_id
+from .errors import CacheError
 from .field import RadianceField, bake_field
 from .graph import BuildParams, Graph, build_graph, build_params
 from .lighting import direct_radiance
@@ -31,24 +32,34 @@ LIGHTING = {"disk_samples": 16, "tol": 1e-5, "transport": "krylov"}
 
 @dataclass
 class RadianceCache:
-    """A graph with the transported radiance of one (albedo, light, max_depth).
+    """A graph with the transported radiance of one (albedo, light, max_depth), and its field.
 
     Attributes:
-        graph: the graph.
         radiance: (N, 3) float32 node radiance L' (Algorithm 1), phase function included.
         radiance_gather: (N, 3) the same with one scattering event fewer (max_depth - 1), for
             estimators that scatter once more before looking up (the same when unbounded).
-        keys: volume_id, graph_key, radiance_key.
         field: the baked :class:`~cloudgraph.field.RadianceField` (the ``field`` estimator's).
+        keys: volume_id, graph_key, radiance_key.
         stats: graph, radiance and field stats, stage times, bytes.
+        graph: the graph, read from the store only when first used: a ``field`` render of a
+            cached scene never reads it (it is by far the largest file).
     """
 
-    graph: Graph
     radiance: np.ndarray
     radiance_gather: np.ndarray
     field: RadianceField
     keys: dict
     stats: dict
+    store: CacheStore
+    _graph: Graph | None = None
+
+    @property
+    def graph(self) -> Graph:
+        if self._graph is None:
+            self._graph = self.store.load_graph(self.keys["graph_key"])
+            if self._graph is None:
+                raise CacheError("the graph of this cache was evicted; run the precompute again")
+        return self._graph
 
 
 _VOLUME_IDS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -90,14 +101,17 @@ def precompute(
     gkey, rkey = keys["graph_key"], keys["radiance_key"]
     light_dir = np.asarray(scene.light.unit_direction())
 
-    graph = store.load_graph(gkey)
-    graph_reused = graph is not None
-    if graph is None:
-        graph = build_graph(
-            volume, scene.medium.density_scale, params, progress=lambda s, f: progress(s, 0.7 * f)
-        )
-        store.save_graph(gkey, graph)
     found = store.load_radiance(rkey)
+    found_field = store.load_field(rkey)
+    graph, graph_reused = None, True
+    if found is None or found_field is None:  # the graph is needed: read it, or build it
+        graph = store.load_graph(gkey)
+        graph_reused = graph is not None
+        if graph is None:
+            graph = build_graph(
+                volume, scene.medium.density_scale, params, progress=lambda s, f: progress(s, 0.7 * f)
+            )
+            store.save_graph(gkey, graph)
     if found is not None:
         (radiance, radiance_gather), rstats = found
     else:
@@ -129,12 +143,12 @@ def precompute(
         t_transport = time.perf_counter() - t0
         radiance, radiance_gather = L.astype(np.float32), L_gather.astype(np.float32)
         rstats = {
+            **graph.stats,  # kept with the radiance, so that a reused cache needs no graph read
             "lighting_s": round(t_light, 3),
             "transport_s": round(t_transport, 3),
             "transport_iterations": iterations,
         }
         store.save_radiance(rkey, radiance, radiance_gather, rstats)
-    found_field = store.load_field(rkey)
     if found_field is not None:
         field, fstats = RadianceField.decode(found_field), {}
     else:
@@ -155,16 +169,28 @@ def precompute(
         field = RadianceField.decode(data)  # render what is stored, fresh or loaded alike
     progress("done", 1.0)
     stats = {
-        **graph.stats,
         **rstats,
         **fstats,
         "graph_reused": graph_reused,
         "radiance_reused": found is not None,
         "field_reused": found_field is not None,
-        "graph_bytes": store.graph_path(gkey).stat().st_size,
-        "radiance_bytes": store.radiance_path(rkey).stat().st_size,
-        "field_bytes": store.field_path(rkey).stat().st_size,
+        **{
+            f"{kind}_bytes": _size(path)
+            for kind, path in (
+                ("graph", store.graph_path(gkey)),
+                ("radiance", store.radiance_path(rkey)),
+                ("field", store.field_path(rkey)),
+            )
+        },
         "radius": params.radius,
         "quality": quality,
     }
-    return RadianceCache(graph, radiance, radiance_gather, field, keys, stats)
+    return RadianceCache(radiance, radiance_gather, field, keys, stats, store, graph)
+
+
+def _size(path) -> int:
+    """Bytes of a cache file; 0 once evicted."""
+    try:
+        return path.stat().st_size
+    except FileNotFoundError:
+        return 0

@@ -137,6 +137,20 @@ def test_a_new_light_relights_the_field_without_a_new_graph(variant, tmp_path):
     assert b.stats["field_s"] > 0 and b.stats["lighting_s"] >= 0
 
 
+def test_a_field_render_of_a_cached_scene_never_reads_the_graph(sphere, monkeypatch):
+    store = sphere["cache"].store
+    again = precompute(sphere["scene"], sphere["volume"], "draft", store)
+    assert again.stats["radiance_reused"] and again.stats["field_reused"]
+    assert again.stats["nodes"] == sphere["cache"].stats["nodes"]  # kept with the radiance
+
+    def no_graph(key):
+        raise AssertionError("the graph was read")
+
+    monkeypatch.setattr(store, "load_graph", no_graph)
+    image = renderer(again, sphere["volume"], sphere["scene"]).render(sphere["scene"].camera, 1, 0, "field")
+    assert image.mean() > 0
+
+
 # ------------------------------------------------------------------ the file
 
 
