@@ -1,38 +1,35 @@
 """The web page, driven by headless Chromium (Playwright) against a real service.
 
 One service (redis-server, one worker, uvicorn) and one page for the module; the tests run in
-file order, each a step of one session: load, upload, precompute, view and orbit, compare,
-animate, bad upload. Screenshots of every step go to test-artifacts/web/.
+file order, each a step of one session: load, upload, precompute, the real-time (WebGL2) view
+and orbit, compare with the server, relight, final frame, animate, bad upload; then pages of
+their own for the server fallback (Chromium launched with --disable-webgl), a broken field and
+a Disney-sized field's memory. Chromium has no GPU here: WebGL2 runs on SwiftShader.
+Screenshots of every step go to test-artifacts/web/.
 """
 
 from __future__ import annotations
 
+import base64
 import json
 import math
-import os
 import re
 import shutil
 import time
-from pathlib import Path
 
 import pytest
 
 from ..harness import ROOT, start_service
+from .browser import ARGS, NO_WEBGL_ARGS, chromium_path, new_page
+from .fieldmaker import encode, make_field
 
 sync_api = pytest.importorskip("playwright.sync_api")
 
-CHROMIUM = os.environ.get("CLOUDGRAPH_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
-ARGS = [
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 ARTIFACTS = ROOT / "test-artifacts" / "web"
-TIMEOUT_MS = 60_000
+#: Frames a second the real-time view must draw while orbiting (software WebGL, >= 128 px).
+MIN_ORBIT_FPS = 20
+#: The real-time view against the server's `field` render of the same camera, at rest.
+MAX_FIELD_REL_MAE = 0.03
 
 # Gray values of the viewport image at 64x64, drawn through a canvas in the page.
 PIXELS_JS = """() => {
@@ -56,27 +53,20 @@ def service(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def browser():
-    if not Path(CHROMIUM).exists():
-        pytest.skip(
-            f"Chromium not found at {CHROMIUM} (install Debian's chromium or set CLOUDGRAPH_CHROMIUM)"
-        )
+def playwright():
+    if chromium_path() is None:
+        pytest.skip("Chromium not found (install Debian's chromium or set CLOUDGRAPH_CHROMIUM)")
     shutil.rmtree(ARTIFACTS, ignore_errors=True)
     ARTIFACTS.mkdir(parents=True)
     with sync_api.sync_playwright() as pw:
-        b = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS)
-        yield b
-        b.close()
+        yield pw
 
 
-def new_page(browser):
-    context = browser.new_context(viewport={"width": 1400, "height": 950})
-    pg = context.new_page()
-    pg.set_default_timeout(TIMEOUT_MS)
-    pg.problems = []
-    pg.on("pageerror", lambda e: pg.problems.append(f"page error: {e}"))
-    pg.on("console", lambda m: m.type == "error" and pg.problems.append(f"console: {m.text}"))
-    return pg
+@pytest.fixture(scope="module")
+def browser(playwright):
+    b = playwright.chromium.launch(executable_path=chromium_path(), args=ARGS)
+    yield b
+    b.close()
 
 
 @pytest.fixture(scope="module")
@@ -223,6 +213,7 @@ def _count_event_sources(page) -> None:
 
 
 def _wait_final(page, after_frame: int) -> None:
+    """Waits for the server viewer's final (256 px, 4 passes) image after ``after_frame``."""
     page.wait_for_function(
         f"""() => {{
           const img = document.querySelector('#view-img');
@@ -232,44 +223,120 @@ def _wait_final(page, after_frame: int) -> None:
     )
 
 
-def test_viewport_shows_image_and_orbits(page):
-    _wait_final(page, 0)
-    assert page.eval_on_selector("#view-img", "i => i.naturalWidth") == 256
-    info = page.inner_text("#view-info")
-    assert "256×256 px · 32 spp" in info and "render" in info and "round trip" in info
-    before = page.evaluate(PIXELS_JS)
-    assert max(before) > 20, "the rendered smoke is black"
-    frame = int(page.get_attribute("#view-img", "data-frame"))
-    shot(page, "05-viewport")
+def _frames(page) -> int:
+    return int(page.get_attribute("#viewport", "data-frames") or 0)
 
-    page.evaluate(
-        """() => {
-        const img = document.querySelector('#view-img');
-        window.__levels = [];
-        new MutationObserver(() => window.__levels.push(img.dataset.level))
-          .observe(img, { attributes: true, attributeFilter: ['data-frame'] });
-      }"""
+
+def _wait_rest(page, after_frames: int) -> None:
+    """Waits for the real-time view's full-size frame at rest, drawn after ``after_frames``."""
+    page.wait_for_function(
+        f"""() => {{
+          const v = document.querySelector('#viewport');
+          return v.dataset.renderer === 'webgl' && v.dataset.state === 'rest'
+            && Number(v.dataset.frames || 0) > {after_frames};
+        }}"""
     )
+
+
+# Gray values at 64x64 of a PNG (given as base64), decoded in the page.
+PNG_PIXELS_JS = """async (b64) => {
+  const bytes = Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
+  const bitmap = await createImageBitmap(new Blob([bytes], { type: 'image/png' }));
+  const c = document.createElement('canvas');
+  c.width = 64; c.height = 64;
+  const ctx = c.getContext('2d');
+  ctx.drawImage(bitmap, 0, 0, 64, 64);
+  const d = ctx.getImageData(0, 0, 64, 64).data;
+  const out = [];
+  for (let i = 0; i < d.length; i += 4) out.push((d[i] + d[i + 1] + d[i + 2]) / 3);
+  return out;
+}"""
+
+
+def _shown_pixels(page) -> list[float]:
+    """Gray values of what the viewport shows (a screenshot: a WebGL canvas cannot be read
+    back once it has been shown)."""
+    png = page.locator("#viewport").screenshot()
+    return page.evaluate(PNG_PIXELS_JS, base64.b64encode(png).decode())
+
+# Drags on the viewport with pointer events sent from inside the page every 8 ms (a mouse's
+# rate; Playwright's own mouse moves wait for a round trip each), after a real mouse press.
+# Records the internal size of every frame drawn meanwhile.
+ORBIT_JS = """([x, y, ms, dx]) => new Promise((done) => {
+  const el = document.querySelector('#viewport');
+  const sizes = [];
+  const obs = new MutationObserver(() => sizes.push(Number(el.dataset.internal)));
+  obs.observe(el, { attributes: true, attributeFilter: ['data-frames'] });
+  const f0 = Number(el.dataset.frames || 0);
+  const t0 = performance.now();
+  let i = 0;
+  const id = setInterval(() => {
+    i++;
+    const t = performance.now() - t0;
+    el.dispatchEvent(new PointerEvent('pointermove', {
+      pointerId: 1, isPrimary: true, pointerType: 'mouse', buttons: 1, bubbles: true,
+      clientX: x + dx * t / ms + 20 * Math.sin(i / 9), clientY: y + 15 * Math.sin(i / 13) }));
+    if (t >= ms) {
+      clearInterval(id);
+      obs.disconnect();
+      const seconds = (performance.now() - t0) / 1000;
+      done({ fps: (Number(el.dataset.frames) - f0) / seconds, sizes, seconds });
+    }
+  }, 8);
+})"""
+
+
+def _orbit(page, ms: int = 3000, dx: float = 120) -> dict:
     box = page.locator("#viewport").bounding_box()
     x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
     page.mouse.move(x, y)
     page.mouse.down()
-    for i in range(1, 13):
-        page.mouse.move(x + 12 * i, y + 2 * i)
-        time.sleep(0.03)
-    page.mouse.up()
-    _wait_final(page, frame)
-    after = page.evaluate(PIXELS_JS)
-    diff = sum(abs(a - b) for a, b in zip(before, after, strict=True)) / len(before)
+    try:
+        return page.evaluate(ORBIT_JS, [x, y, ms, dx])
+    finally:
+        page.mouse.up()
+
+
+def _mean_abs(a, b) -> float:
+    return sum(abs(p - q) for p, q in zip(a, b, strict=True)) / len(a)
+
+
+def test_realtime_view_draws_the_field(page):
+    """With WebGL2 the page draws the cache's field itself, at full size once at rest."""
+    _wait_rest(page, 0)
+    vp = page.eval_on_selector("#viewport", "v => ({...v.dataset})")
+    assert vp["renderer"] == "webgl" and re.fullmatch(r"[0-9a-f]{64}", vp["fieldKey"]), vp
+    width = page.eval_on_selector("#view-canvas", "c => c.width")
+    assert int(vp["internal"]) == width >= 256
+    info = page.inner_text("#view-info")
+    assert info.startswith("WebGL2") and "rest" in info and re.search(r"field \d+×\d+×\d+", info)
+    assert "this page draws the cache's radiance field" in page.inner_text("#view-mode")
+    pixels = _shown_pixels(page)
+    assert max(pixels) > 20, "the real-time view of the smoke is black"
+    assert page.is_hidden("#view-img") and page.is_hidden("#view-overlay")
+    assert errors_shown(page) == []
+    shot(page, "05-realtime")
+
+
+def test_realtime_orbit_holds_frame_rate(page):
+    """Orbiting draws at least MIN_ORBIT_FPS frames a second, never below 128 px inside, and
+    the full size again at rest."""
+    before = _shown_pixels(page)
+    full = int(page.get_attribute("#viewport", "data-internal"))
+    r = _orbit(page, ms=3000, dx=150)
+    frames = _frames(page)
+    assert r["fps"] >= MIN_ORBIT_FPS, f"{r['fps']:.1f} frames/s while orbiting (sizes {r['sizes'][-10:]})"
+    assert r["sizes"] and min(r["sizes"]) >= 128, r["sizes"]
+    shot(page, "06-orbiting")
+    _wait_rest(page, frames - 1)
+    assert int(page.get_attribute("#viewport", "data-internal")) == full
+    after = _shown_pixels(page)
+    diff = _mean_abs(before, after)
     assert diff > 1.0, f"the image hardly changed after orbiting (mean |diff| {diff:.3f} of 255)"
-    levels = page.evaluate("window.__levels")
-    # fast previews while moving, then the refinements once the camera rests: a larger image,
-    # then four passes at full size, averaged in the page
-    last = len(levels) - 1 - levels[::-1].index("0")
-    assert levels[0] == "0" and levels[last + 1 :] == ["1", "2", "2", "2", "2"], levels
     assert "yaw -" in page.inner_text("#camera-info")
     assert errors_shown(page) == []
     shot(page, "06-orbited")
+    print(f"orbit: {r['fps']:.1f} frames/s, internal {min(r['sizes'])}..{max(r['sizes'])} px")
 
 
 def _camera(page):
@@ -330,9 +397,73 @@ def test_zoom_pan_fly_and_keyframes(page):
     page.click("#anim-add-key")
     assert page.locator("#anim-keys-list li").count() == 2
     assert page.inner_text("#anim-keys-count") == "2 keyframes"
-    _wait_final(page, int(page.get_attribute("#view-img", "data-frame")))
+    _wait_rest(page, _frames(page) - 1)
     assert errors_shown(page) == []
     shot(page, "07-moved-keyframes")
+
+
+def test_compare_realtime_with_server_field(page):
+    """At rest the page's view is the server's `field` render of the same camera and size,
+    within MAX_FIELD_REL_MAE; the comparison with volpath is shown beside it."""
+    page.select_option("#compare-size", "128")
+    page.fill("#compare-volpath-spp", "8")
+    page.click("#compare-realtime")
+    page.wait_for_selector("#compare-result[data-state=done], #compare-result[data-state=failed]")
+    assert page.get_attribute("#compare-result", "data-state") == "done", errors_shown(page)
+    rel = float(page.get_attribute("#compare-result", "data-rel-mae"))
+    rel_volpath = float(page.get_attribute("#compare-result", "data-rel-mae-volpath"))
+    text = page.inner_text("#compare-result")
+    print(f"real-time vs server field: relMAE {rel:.4f}; vs volpath 8 spp {rel_volpath:.4f}")
+    assert 0 <= rel < MAX_FIELD_REL_MAE, text
+    assert 0 < rel_volpath < 1, text
+    assert "real-time vs server field: relMAE" in text and "real-time vs volpath 8 spp" in text
+    shot(page, "08a-compare-realtime")
+
+
+def test_final_frame_at_rest(page):
+    """The toggle asks the server for a gather frame at rest, shown over the real-time view
+    until the camera moves."""
+    page.check("#final-toggle")
+    page.wait_for_selector("#viewport[data-final='1']", timeout=120_000)
+    assert page.is_visible("#view-img")
+    assert page.eval_on_selector("#view-img", "i => i.naturalWidth") == 256
+    assert "final: server gather 256×256 px" in page.inner_text("#view-info")
+    shot(page, "08b-final")
+    frames = _frames(page)
+    _orbit(page, ms=300, dx=-20)
+    assert page.get_attribute("#viewport", "data-final") is None and page.is_hidden("#view-img")
+    page.uncheck("#final-toggle")
+    _wait_rest(page, frames)
+    assert page.get_attribute("#viewport", "data-final") is None
+    assert errors_shown(page) == []
+
+
+def test_relight_keeps_old_field_then_swaps(page):
+    """A new light starts a relight (the graph reused); the old field is drawn meanwhile and
+    the new one replaces it, with the time it took shown."""
+    old_key = page.get_attribute("#viewport", "data-field-key")
+    page.fill("#light-az", "60")
+    page.dispatch_event("#light-az", "change")
+    page.wait_for_selector("#relight-info:has-text('Relighting on the server')")
+    # meanwhile: still the real-time view of the old field, and it still follows the camera
+    frames = _frames(page)
+    _orbit(page, ms=400, dx=30)
+    vp = page.eval_on_selector("#viewport", "v => ({...v.dataset})")
+    assert vp["renderer"] == "webgl" and int(vp["frames"]) > frames
+    relit = vp["fieldKey"] != old_key  # a very quick relight may be done already
+    assert relit or page.get_attribute("#relight-info", "data-seconds") is None
+    shot(page, "08c-relighting")
+    page.wait_for_selector("#relight-info[data-seconds]", timeout=180_000)
+    seconds = float(page.get_attribute("#relight-info", "data-seconds"))
+    assert 0 < seconds < 180
+    assert "Relit in" in page.inner_text("#relight-info")
+    new_key = page.get_attribute("#viewport", "data-field-key")
+    assert re.fullmatch(r"[0-9a-f]{64}", new_key) and new_key != old_key
+    assert page.inner_text("#cache-stats dd[data-stat='graph build']") == "reused"
+    _wait_rest(page, _frames(page) - 1)
+    assert errors_shown(page) == []
+    shot(page, "08d-relit")
+    print(f"relight: {seconds:.2f} s from the light change to the new field drawn")
 
 
 def test_compare_graph_with_volpath(page):
@@ -415,6 +546,123 @@ def test_no_unexpected_page_errors(page):
     assert unexpected == []
 
 
+def _open_scene(pg, url: str) -> None:
+    """Loads the page, picks the uploaded smoke and precomputes (found on the server)."""
+    pg.goto(url + "/")
+    pg.wait_for_selector("#volume-select option[value]:not([value=''])", state="attached")
+    pg.select_option("#quality", "draft")
+    pg.click("#precompute")
+    pg.wait_for_selector("#cache-state[data-state=ready], #cache-state[data-state=failed]")
+    assert pg.get_attribute("#cache-state", "data-state") == "ready", errors_shown(pg)
+
+
+def test_fallback_without_webgl(playwright, service):
+    """Chromium without WebGL: the page says so and the server renders the viewport
+    progressively (fast previews while moving, then larger and averaged passes at rest)."""
+    b = playwright.chromium.launch(executable_path=chromium_path(), args=NO_WEBGL_ARGS)
+    try:
+        pg = new_page(b)
+        _open_scene(pg, service.url)
+        pg.wait_for_selector("#viewport[data-renderer=server]")
+        assert "Real-time view unavailable: WebGL2 is disabled or unavailable" in pg.inner_text("#view-mode")
+        assert "server's progressive renders" in pg.inner_text("#view-mode")
+        _wait_final(pg, 0)
+        assert pg.eval_on_selector("#view-img", "i => i.naturalWidth") == 256
+        assert pg.is_hidden("#view-canvas")
+        info = pg.inner_text("#view-info")
+        assert "256×256 px · 32 spp" in info and "render" in info and "round trip" in info
+        before = pg.evaluate(PIXELS_JS)
+        assert max(before) > 20, "the rendered smoke is black"
+        frame = int(pg.get_attribute("#view-img", "data-frame"))
+        assert _frames(pg) == frame
+        pg.evaluate(
+            """() => {
+            const img = document.querySelector('#view-img');
+            window.__levels = [];
+            new MutationObserver(() => window.__levels.push(img.dataset.level))
+              .observe(img, { attributes: true, attributeFilter: ['data-frame'] });
+          }"""
+        )
+        box = pg.locator("#viewport").bounding_box()
+        x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+        pg.mouse.move(x, y)
+        pg.mouse.down()
+        for i in range(1, 13):
+            pg.mouse.move(x + 12 * i, y + 2 * i)
+            time.sleep(0.03)
+        pg.mouse.up()
+        _wait_final(pg, frame)
+        diff = _mean_abs(before, pg.evaluate(PIXELS_JS))
+        assert diff > 1.0, f"the image hardly changed after orbiting (mean |diff| {diff:.3f} of 255)"
+        levels = pg.evaluate("window.__levels")
+        last = len(levels) - 1 - levels[::-1].index("0")
+        assert levels[0] == "0" and levels[last + 1 :] == ["1", "2", "2", "2", "2"], levels
+        # the real-time comparison says why it cannot run
+        pg.click("#compare-realtime")
+        pg.wait_for_selector("#errors li:has-text('not drawing a field')")
+        shot(pg, "15-fallback-no-webgl")
+        pg.context.close()
+    finally:
+        b.close()
+
+
+def test_broken_field_falls_back_with_error(browser, service):
+    """A field that cannot be decoded is an error in words, and the server renders instead."""
+    pg = new_page(browser)
+    try:
+        pg.route(
+            "**/v1/caches/*/field",
+            lambda route: route.fulfill(
+                status=200, content_type="application/octet-stream", body=b"<html>oops"
+            ),
+        )
+        _open_scene(pg, service.url)
+        pg.wait_for_selector("#errors li")
+        message = errors_shown(pg)[0]
+        assert "Real-time view" in message and "not a cloudgraph field" in message, message
+        pg.wait_for_selector("#viewport[data-renderer=server]")
+        assert "not a cloudgraph field" in pg.inner_text("#view-mode")
+        _wait_final(pg, 0)
+        shot(pg, "16-broken-field")
+    finally:
+        pg.context.close()
+
+
+#: The Disney cloud at 1/16 resolution: its field's grid.
+DISNEY_16 = (154, 86, 126)
+
+
+def test_disney_sized_field_fits_in_memory(browser, service):
+    """A field the size of Disney 1/16's (126x86x154 voxels) is drawn with at most 200 MB of
+    page memory: the JS heap after loading plus the GPU textures."""
+    body = encode(make_field(shape=DISNEY_16, block=8), compress=True)
+    pg = new_page(browser)
+    try:
+        pg.route(
+            "**/v1/caches/*/field",
+            lambda route: route.fulfill(
+                status=200,
+                headers={"Content-Encoding": "gzip", "Content-Type": "application/octet-stream"},
+                body=body,
+            ),
+        )
+        _open_scene(pg, service.url)
+        pg.wait_for_selector("#viewport[data-renderer=webgl][data-state=rest]")
+        info = pg.inner_text("#view-info")
+        assert "field 126×86×154" in info, info
+        gpu = int(pg.get_attribute("#viewport", "data-texture-bytes"))
+        cdp = pg.context.new_cdp_session(pg)
+        cdp.send("HeapProfiler.collectGarbage")
+        cdp.send("Performance.enable")
+        metrics = {m["name"]: m["value"] for m in cdp.send("Performance.getMetrics")["metrics"]}
+        heap = metrics["JSHeapUsedSize"]
+        print(f"Disney-sized field: JS heap {heap / 2**20:.1f} MiB, textures {gpu / 2**20:.1f} MiB")
+        assert heap + gpu <= 200e6, (heap, gpu)
+        assert errors_shown(pg) == []
+    finally:
+        pg.context.close()
+
+
 KEY = "web-test-key-0123456789abcdef"
 
 
@@ -459,7 +707,7 @@ def test_api_key_polling_and_video_download(browser, key_service, data_dir):
         assert pg.evaluate("window.__eventSources") == []
         assert pg.evaluate("window.__progress")[-1] == 1.0
         assert int(pg.inner_text("#cache-stats dd[data-stat=nodes]").replace(",", "")) > 0
-        _wait_final(pg, 0)
+        _wait_rest(pg, 0)
         shot(pg, "13-key-viewport")
 
         pg.fill("#anim-frames", "2")

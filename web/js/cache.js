@@ -156,6 +156,8 @@ export class CachePanel {
       ["graph build", s.graph_reused ? "reused" : formatSeconds(s.build_s)],
       ["lighting", s.radiance_reused ? "reused" : formatSeconds(s.lighting_s)],
       ["transport", s.radiance_reused ? "reused" : formatSeconds(s.transport_s)],
+      ["field bake", s.field_reused ? "reused" : formatSeconds(s.field_s)],
+      ["field", s.field_bytes != null ? formatBytes(s.field_bytes) : "–"],
       ["bytes", `${formatBytes(bytes)} (graph ${formatBytes(s.graph_bytes)}, radiance ${formatBytes(s.radiance_bytes)})`],
       ["node radius", s.radius != null ? Number(s.radius).toPrecision(3) : "–"],
     ];

@@ -105,6 +105,7 @@ export class RealtimeView {
       const [nx, ny, nz] = this.gl.field.grid;
       this.fieldInfo = `field ${nx}×${ny}×${nz} · ${formatBytes(field.bytes)} · GPU ${formatBytes(this.gl.field.textureBytes)}`;
       this.element.dataset.fieldKey = this.gl.field.radianceKey || "";
+      this.element.dataset.textureBytes = String(this.gl.field.textureBytes);
       this.redraw();
       return (performance.now() - t0) / 1000;
     })();
