@@ -81,7 +81,7 @@ class LimitBody:
     answered at once (the body is read and dropped, up to ``DRAIN``, so the client sees the
     answer); a chunked body is counted as it arrives."""
 
-    DRAIN = 256 * 2**20
+    DRAIN = 4 * 2**20
     UPLOAD_SLACK = 2**20  # multipart boundaries and headers around the file
 
     def __init__(self, app, settings: Settings):
