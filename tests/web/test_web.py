@@ -259,6 +259,7 @@ def _shown_pixels(page) -> list[float]:
     png = page.locator("#viewport").screenshot()
     return page.evaluate(PNG_PIXELS_JS, base64.b64encode(png).decode())
 
+
 # Drags on the viewport with pointer events sent from inside the page every 8 ms (a mouse's
 # rate; Playwright's own mouse moves wait for a round trip each), after a real mouse press.
 # Records the internal size of every frame drawn meanwhile.

@@ -3,6 +3,7 @@
 
 import { fragmentShader, VERTEX } from "./shaders.js";
 import { halfToFloat } from "./field.js";
+import { linearToSrgb8, srgbToLinear } from "./imagemath.js";
 import { cross, normalize, sub } from "./camera.js";
 
 /** Why this browser cannot draw the real-time view, or "" when it can. */
@@ -87,12 +88,12 @@ export class GLView {
 
   /**
    * GPU bytes of a field's textures: RG16F density + tau, RGBA16F-padded radiance, R16F
-   * majorant, and the RGBA16F (sigma_t, L_in) texture of the moving camera.
+   * majorant, and the RGBA16F (sigma_t, L_in) texture of the moving camera with its mipmaps.
    */
   static textureBytes(field) {
     const count = (a) => a.shape[0] * a.shape[1] * a.shape[2];
     const { sigma_t, radiance_ms, majorant } = field.arrays;
-    return 12 * count(sigma_t) + 8 * count(radiance_ms) + 2 * count(majorant);
+    return Math.round((4 + (8 * 8) / 7) * count(sigma_t) + 8 * count(radiance_ms) + 2 * count(majorant));
   }
 
   /**
@@ -130,7 +131,14 @@ export class GLView {
       gl.bindTexture(gl.TEXTURE_3D, t);
       gl.pixelStorei(gl.UNPACK_ALIGNMENT, 4);
       gl.texImage3D(gl.TEXTURE_3D, 0, gl.RGBA16F, nx, ny, nz, 0, gl.RGBA, gl.FLOAT, data);
-      gl.texParameteri(gl.TEXTURE_3D, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
+      // Mipmaps (where the device can render to half floats): long steps read a prefiltered
+      // field instead of skipping over thin features.
+      let mips = false;
+      if (gl.getExtension("EXT_color_buffer_float") || gl.getExtension("EXT_color_buffer_half_float")) {
+        gl.generateMipmap(gl.TEXTURE_3D);
+        mips = gl.getError() === gl.NO_ERROR;
+      }
+      gl.texParameteri(gl.TEXTURE_3D, gl.TEXTURE_MIN_FILTER, mips ? gl.LINEAR_MIPMAP_LINEAR : gl.LINEAR);
       gl.texParameteri(gl.TEXTURE_3D, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
       for (const w of [gl.TEXTURE_WRAP_S, gl.TEXTURE_WRAP_T, gl.TEXTURE_WRAP_R]) {
         gl.texParameteri(gl.TEXTURE_3D, w, gl.CLAMP_TO_EDGE);
@@ -176,7 +184,7 @@ export class GLView {
    * Draws the field as seen by scene-spec camera ``cam`` into the current framebuffer at
    * width x height. exposure: stops; stepScale >= 1 lengthens the march step (while moving).
    */
-  draw(cam, width, height, { exposure = 0, stepScale = 1, fast = false } = {}) {
+  draw(cam, width, height, { exposure = 0, stepScale = 1, fast = false, seed = 0, offset = [0.5, 0.5], linear = false } = {}) {
     const gl = this.gl;
     const f = this.field;
     if (!f) return;
@@ -201,6 +209,10 @@ export class GLView {
     gl.uniform1f(L.uGain, 2 ** exposure);
     gl.uniform3fv(L.uBlockCells, f.blockCells);
     gl.uniform3iv(L.uBlocks, f.blocks);
+    gl.uniform1ui(L.uSeed, seed);
+    gl.uniform2fv(L.uPixelOffset, offset);
+    gl.uniform1i(L.uLinearOut, linear ? 1 : 0);
+    gl.uniform1f(L.uLod, Math.max(0, Math.log2(stepScale / 2)));
     const units = [
       ["uDensTau", fast ? this.textures.packed : this.textures.densTau],
       ["uRad", this.textures.rad],
@@ -226,32 +238,58 @@ export class GLView {
     this.draw(cam, width, height, options);
   }
 
-  /** The field seen by ``cam`` at its width x height (full quality unless ``fast``), as
-   * top-down ImageData. */
-  readImage(cam, { exposure = 0, fast = false } = {}) {
+  /**
+   * The field seen by ``cam`` at its width x height with the exact march, as top-down sRGB
+   * ImageData. ``samples`` = n^2 > 1 averages n x n stratified ray origins inside each pixel
+   * (a box filter, as the server's multi-sample renders), in linear radiance where the device
+   * can render to float textures.
+   */
+  readImage(cam, { exposure = 0, samples = 1, fast = false } = {}) {
     const gl = this.gl;
     const { width, height } = cam;
+    const n = Math.max(1, Math.round(Math.sqrt(samples)));
+    const float = n > 1 && !!gl.getExtension("EXT_color_buffer_float");
     const tex = gl.createTexture();
     gl.bindTexture(gl.TEXTURE_2D, tex);
-    gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA8, width, height);
+    gl.texStorage2D(gl.TEXTURE_2D, 1, float ? gl.RGBA32F : gl.RGBA8, width, height);
     const fbo = gl.createFramebuffer();
     gl.bindFramebuffer(gl.FRAMEBUFFER, fbo);
     gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, tex, 0);
+    const sum = new Float32Array(width * height * 4);
     try {
-      this.draw(cam, width, height, { exposure, stepScale: 1, fast });
-      const rows = new Uint8Array(width * height * 4);
-      gl.readPixels(0, 0, width, height, gl.RGBA, gl.UNSIGNED_BYTE, rows);
-      const out = new ImageData(width, height);
-      const stride = width * 4;
-      for (let r = 0; r < height; r++) {
-        out.data.set(rows.subarray((height - 1 - r) * stride, (height - r) * stride), r * stride);
+      for (let k = 0; k < n * n; k++) {
+        const offset = n > 1 ? [((k % n) + 0.5) / n, (Math.floor(k / n) + 0.5) / n] : [0.5, 0.5];
+        this.draw(cam, width, height, { exposure, fast, seed: k, offset, linear: float });
+        if (float) {
+          const px = new Float32Array(width * height * 4);
+          gl.readPixels(0, 0, width, height, gl.RGBA, gl.FLOAT, px);
+          for (let i = 0; i < px.length; i++) sum[i] += px[i];
+        } else {
+          const px = new Uint8Array(width * height * 4);
+          gl.readPixels(0, 0, width, height, gl.RGBA, gl.UNSIGNED_BYTE, px);
+          for (let i = 0; i < px.length; i++) sum[i] += srgbToLinear(px[i]);
+        }
       }
-      return out;
     } finally {
       gl.bindFramebuffer(gl.FRAMEBUFFER, null);
       gl.deleteFramebuffer(fbo);
       gl.deleteTexture(tex);
     }
+    // mean, clamped, to sRGB bytes, rows flipped to top-down
+    const out = new ImageData(width, height);
+    const inv = 1 / (n * n);
+    for (let r = 0; r < height; r++) {
+      for (let c = 0; c < width; c++) {
+        const src = 4 * ((height - 1 - r) * width + c);
+        const dst = 4 * (r * width + c);
+        for (let ch = 0; ch < 3; ch++) {
+          const x = Math.min(1, Math.max(0, sum[src + ch] * inv));
+          out.data[dst + ch] = linearToSrgb8(x);
+        }
+        out.data[dst + 3] = 255;
+      }
+    }
+    return out;
   }
 }
 

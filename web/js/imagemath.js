@@ -10,6 +10,12 @@ export function srgbToLinear(byte) {
   return SRGB_TO_LINEAR[byte];
 }
 
+/** The sRGB byte of a linear value (clamped to [0, 1]), as the server's PNGs have it. */
+export function linearToSrgb8(x) {
+  const c = x <= 0.0031308 ? 12.92 * x : 1.055 * x ** (1 / 2.4) - 0.055;
+  return Math.max(0, Math.min(255, Math.round(c * 255)));
+}
+
 /** The pixels of an image blob (a PNG), as ImageData at the image's own size. */
 export async function imageDataOf(blob) {
   const bitmap = await createImageBitmap(blob, { colorSpaceConversion: "none", premultiplyAlpha: "none" });

@@ -117,12 +117,20 @@ new AnimationPanel({
   },
 });
 
+/** The camera's numbers: data attributes at once (tests and tools read them), the text and
+ * the light widget's camera dot once a frame (a mouse sends more moves than frames). */
+let cameraTextPending = false;
 function showCamera() {
   const info = $("#camera-info");
-  setText(info, camera.describe());
   info.dataset.eye = JSON.stringify(camera.eye());
   info.dataset.target = JSON.stringify(camera.target);
-  scene.light.setCamera(camera.yaw);
+  if (cameraTextPending) return;
+  cameraTextPending = true;
+  requestAnimationFrame(() => {
+    cameraTextPending = false;
+    setText(info, camera.describe());
+    scene.light.setCamera(camera.yaw);
+  });
 }
 
 function cameraMoved() {

@@ -4,7 +4,7 @@
 
 export const BUDGET_MS = 16;
 export const MIN_SIZE = 128;
-const MAX_STEP_SCALE = 4;
+const MAX_STEP_SCALE = 8;
 
 /** Levels from the full size down: size shrinks to 256 px, then the step doubles, then size
  * shrinks to MIN_SIZE, then the step grows to MAX_STEP_SCALE. Each { size, stepScale, cost }. */
@@ -19,7 +19,7 @@ export function ladder(full) {
   push(Math.min(full, 256), 1);
   push(Math.min(full, 256), 1.5);
   for (size = Math.min(full, 256); size > MIN_SIZE; size *= 0.85) push(size, 2);
-  for (let s = 2; s <= MAX_STEP_SCALE; s += 0.5) push(MIN_SIZE, s);
+  for (let s = 2; s <= MAX_STEP_SCALE; s *= 1.25) push(MIN_SIZE, Math.round(s * 4) / 4);
   levels.sort((a, b) => b.cost - a.cost);
   return levels.filter((l, i) => i === 0 || l.cost < levels[i - 1].cost);
 }

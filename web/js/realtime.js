@@ -328,8 +328,9 @@ export class RealtimeView {
     }
   }
 
-  /** The real-time view of the scene camera at width x height, full quality, as ImageData. */
-  snapshot(width, height) {
-    return this.gl.readImage(this.camera.spec(width, height), { exposure: this.exposure() });
+  /** The real-time view of the scene camera at width x height, full quality, as ImageData;
+   * ``samples`` > 1 averages ray origins over each pixel (as a multi-sample server render). */
+  snapshot(width, height, samples = 1) {
+    return this.gl.readImage(this.camera.spec(width, height), { exposure: this.exposure(), samples });
   }
 }

@@ -52,6 +52,10 @@ uniform vec3 uAlbedo;
 uniform float uGain;          // 2^exposure
 uniform vec3 uBlockCells;     // majorant blocks per unit length on each axis (n / B)
 uniform ivec3 uBlocks;        // majorant grid size
+uniform uint uSeed;           // jitter set (0 for the view; others to average several)
+uniform vec2 uPixelOffset;    // where in its pixel a ray starts (0.5, 0.5: the centre)
+uniform bool uLinearOut;      // write linear radiance x 2^exposure (to average), not sRGB
+uniform float uLod;           // PACKED: mip level of the field for long steps
 
 out vec4 outColor;
 
@@ -60,7 +64,7 @@ const float TR_MIN = 1e-3;
 
 // A fixed per-pixel jitter in [0, 1) (a hash of the pixel's column and row).
 float jitter(uvec2 px) {
-  uint h = px.x * 0x8da6b343u ^ px.y * 0xd8163841u;
+  uint h = px.x * 0x8da6b343u ^ px.y * 0xd8163841u ^ uSeed * 0xcb1ab31fu;
   h ^= h >> 16; h *= 0x7feb352du; h ^= h >> 15; h *= 0x846ca68bu; h ^= h >> 16;
   return float(h >> 8) * (1.0 / 16777216.0);
 }
@@ -72,7 +76,7 @@ float srgb(float x) {
 // (sigma_t per world unit, L_in) at unit-cube point p.
 vec4 fieldAt(vec3 p) {
 #if PACKED
-  vec4 v = texture(uDensTau, p);
+  vec4 v = textureLod(uDensTau, p, uLod);
   return vec4(v.r * uSigmaScale, v.gba);
 #else
   vec2 st = texture(uDensTau, p).rg;
@@ -82,7 +86,7 @@ vec4 fieldAt(vec3 p) {
 
 void main() {
   // Pinhole ray through the pixel centre; fov along the width, row 0 at the top.
-  vec2 ndc = 2.0 * gl_FragCoord.xy / uSize - 1.0;
+  vec2 ndc = 2.0 * (floor(gl_FragCoord.xy) + uPixelOffset) / uSize - 1.0;
   vec3 d = normalize(uForward + ndc.x * uTan.x * uRight + ndc.y * uTan.y * uUp);
 
   // The ray in the field's unit cube; t stays a world distance.
@@ -126,6 +130,10 @@ void main() {
       f0 = f1;
       if (t >= tEnd || Tr < TR_MIN) break;
     }
+  }
+  if (uLinearOut) {
+    outColor = vec4(L * uGain, 1.0);
+    return;
   }
   vec3 x = clamp(L * uGain, 0.0, 1.0);
   outColor = vec4(srgb(x.r), srgb(x.g), srgb(x.b), 1.0);

@@ -6,7 +6,7 @@
 
 import { isAbort } from "./api.js";
 import { formatSeconds, setText } from "./dom.js";
-import { imageDataOf, srgbToLinear } from "./imagemath.js";
+import { imageDataOf, linearToSrgb8, srgbToLinear } from "./imagemath.js";
 import { renderImage } from "./render.js";
 
 export const LEVELS = {
@@ -22,11 +22,6 @@ export const LEVELS = {
   ],
 };
 const REST_MS = 250;
-
-function linearToSrgb8(x) {
-  const c = x <= 0.0031308 ? 12.92 * x : 1.055 * x ** (1 / 2.4) - 0.055;
-  return Math.max(0, Math.min(255, Math.round(c * 255)));
-}
 
 /** A running mean of images, in linear values; toBlob() gives the mean as a PNG. */
 class Accumulator {
