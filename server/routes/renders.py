@@ -33,6 +33,12 @@ def precompute_for(scene, quality, redis, queue, settings, volumes):
     return ensure_cache(body, redis, queue, settings, volumes, prefix="scene.")[1]
 
 
+def _free_workers(queue, settings) -> int:
+    """Workers alive and not stuck past a job's budget."""
+    live, stuck = worker_health(queue, settings)
+    return live - stuck
+
+
 def _render(body: RenderCreate, redis, queue, settings, volumes):
     """Validates, then enqueues the render (after its cache's precompute when that is not ready).
 
@@ -48,7 +54,7 @@ def _render(body: RenderCreate, redis, queue, settings, volumes):
         ready = status_of(pre) == JobStatus.finished
         depends = None if ready else pre
     small = scene.camera.width * scene.camera.height <= settings.SYNC_MAX_PIXELS
-    if ready and small and worker_health(queue, settings)[0] == 0:
+    if ready and small and _free_workers(queue, settings) < 1:
         raise HTTPException(
             503, "no worker is running to render this now; try again shortly", headers={"Retry-After": "10"}
         )
@@ -85,7 +91,7 @@ async def create_render(
 ):
     """Renders a scene. 200 with the image when it is small and its cache ready (or volpath and
     quick); else 202 with a job, which waits on the cache's precompute if that is still running.
-    With no worker alive, a render that would come back directly is 503 at once."""
+    With no worker alive (or all stuck), a render that would come back directly is 503 at once."""
     job, sync = await run_in_threadpool(_render, body, redis, queue, settings, volumes)
     if sync:
         st = await await_job(job, settings.SYNC_WAIT_S, request)
