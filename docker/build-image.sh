@@ -13,4 +13,4 @@ if [ -r /etc/ssl/certs/ca-certificates.crt ]; then
   cmp -s /etc/ssl/certs/ca-certificates.crt docker/ca/host.crt ||
     cp /etc/ssl/certs/ca-certificates.crt docker/ca/host.crt
 fi
-docker build ${QUIET:+-q} --build-arg BASE_IMAGE="$BASE_IMAGE" -f docker/Dockerfile -t "$IMAGE" .
+docker build ${QUIET:+-q} --force-rm --build-arg BASE_IMAGE="$BASE_IMAGE" -f docker/Dockerfile -t "$IMAGE" .

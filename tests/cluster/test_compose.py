@@ -20,6 +20,7 @@ import struct
 import subprocess
 import time
 import zlib
+from pathlib import Path
 
 import httpx
 import pytest
@@ -145,8 +146,20 @@ class Cluster:
         return self.compose("logs", "--no-color", "--tail", "40", timeout=60).stdout[-6000:]
 
 
+def remove_stale_clusters() -> None:
+    """Removes the clusters (and volumes) of earlier test runs whose pytest process is gone
+    (killed before its finalizer ran)."""
+    label = "com.docker.compose.project"
+    out = _run("docker", "ps", "-a", "--filter", f"label={label}", "--format", f'{{{{.Label "{label}"}}}}')
+    for project in set(out.stdout.split()):
+        pid = project.removeprefix("cgtest")
+        if project.startswith("cgtest") and pid.isdigit() and not Path(f"/proc/{pid}").exists():
+            Cluster(project, 0, "k-" + secrets.token_hex(16)).compose("down", "-v", "-t", "5", timeout=180)
+
+
 @pytest.fixture(scope="module")
 def cluster(request) -> Cluster:
+    remove_stale_clusters()
     t0 = time.monotonic()
     build = _run(str(ROOT / "docker" / "build-image.sh"), timeout=1500, env=os.environ | {"QUIET": "1"})
     assert build.returncode == 0, f"image build failed:\n{build.stdout[-3000:]}\n{build.stderr[-3000:]}"
