@@ -13,7 +13,7 @@ the density grid, split as the ``gather`` estimator splits it:
 - everything after the first scattering, from the graph: L_ms(a) = sum_b C[a, b] albedo L'(b),
   the node radiance one collision after the node (T L' with the ``radiance_gather`` that the
   ``gather`` estimator looks up), evaluated at the grid points by Eq. 4.25. It is smooth, so it
-  lives on a grid :data:`MS_COARSEN` times coarser per axis.
+  lives on a grid :data:`MS_COARSEN` times coarser per axis (more for large media).
 
 A camera render is then a deterministic ray march with two texture lookups per step (the
 ``field`` estimator of the graph integrator, and the page's WebGL view). One file, the same bytes
@@ -43,25 +43,32 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+from scipy.ndimage import maximum_filter
+
+from .tracing import BLOCK, DensityField, block_majorant
 
 MAGIC = b"CGFIELD1"
 VERSION = 1
 #: Field grid points at most (the density grid's resolution up to this; coarser beyond, by one
 #: integer factor on every axis). 2^24 points: 64 MiB of float32 per scalar array in memory.
 MAX_POINTS = 1 << 24
-#: The multiple-scattering grid is this many times coarser per axis than the field grid.
+#: The multiple-scattering grid is this many times coarser per axis than the field grid, or
+#: coarser still until at most MS_MAX_POINTS of its points lie next to the medium.
 MS_COARSEN = 2
+MS_MAX_POINTS = 1 << 15
 #: Directions per point of the multiple-scattering gather, and its march step in field voxels.
-MS_DIRECTIONS = 32
+MS_DIRECTIONS = 16
 MS_STEP = 1.0
+#: The gather's steps span at most this optical depth (at the block majorant), and at most
+#: MS_STRIDE times MS_STEP in thin media.
+MS_MAX_DTAU = 0.5
+MS_STRIDE = 4.0
 #: The gather stops where this much light is left, and adds the rest at the last G seen.
 MS_TR_MIN = 1e-2
 #: Multiple-scattering grid points per device batch (times MS_DIRECTIONS rays).
 MS_CHUNK = 1 << 16
-#: Majorant blocks, field voxels a side.
-BLOCK = 8
 #: Light march step, in field voxels (midpoint rule).
-TAU_STEP = 0.25
+TAU_STEP = 0.5
 #: Optical depth where the light march stops: exp(-16) ~ 1e-7 of the light is left.
 TAU_MAX = 16.0
 
@@ -167,18 +174,6 @@ def unit_points(shape) -> np.ndarray:
     return np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
 
 
-def block_majorant(sigma_t: np.ndarray, block: int = BLOCK) -> np.ndarray:
-    """(bz, by, bx) max of sigma_t ((nz, ny, nx)) over blocks, dilated by one voxel first so that
-    trilinear interpolation inside a block never exceeds it."""
-    from scipy.ndimage import maximum_filter
-
-    dilated = maximum_filter(sigma_t, size=3, mode="nearest")
-    pad = [(0, -s % block) for s in dilated.shape]
-    d = np.pad(dilated, pad, mode="edge")
-    bz, by, bx = (s // block for s in d.shape)
-    return d.reshape(bz, block, by, block, bx, block).max(axis=(1, 3, 5))
-
-
 # ------------------------------------------------------------------ baking
 
 
@@ -206,7 +201,6 @@ def bake_field(
         (field, stats): stats hold the bake's seconds per part.
     """
     from .integrators.graph import NodeGrid
-    from .tracing import DensityField
 
     t_start = time.perf_counter()
     medium = DensityField.from_volume(volume, density_scale)
@@ -219,8 +213,12 @@ def bake_field(
         return mi.Point3f(*(w[:, i].astype(np.float32) for i in range(3)))
 
     # sigma_t at the field points (the voxel values themselves when the grid is not coarsened)
-    p = to_world(unit_points(shape))
-    sigma_t = np.array(medium.sigma_t(p), np.float32).reshape(nz, ny, nx)
+    units = unit_points(shape)
+    sigma_t = np.array(medium.sigma_t(to_world(units)), np.float32).reshape(nz, ny, nx)
+    # Only points next to some density matter: trilinear interpolation at any point of the medium
+    # reads 8 grid points, all within one voxel of a non-zero one. The rest stay zero.
+    near = maximum_filter(sigma_t > 0, size=3, mode="constant").ravel()
+    p = to_world(units[near])
 
     # Single scattering: optical depth to the light from every field point (Eq. 4.22 at a point,
     # deterministic). Step in world units: TAU_STEP of the smallest field voxel.
@@ -228,7 +226,7 @@ def bake_field(
     voxel = float((np.linalg.norm(u2w[:3, :3], axis=0) / np.asarray(shape)).min())
     to_light = -np.asarray(light_dir, float) / np.linalg.norm(light_dir)
     tau = _optical_depth(medium, p, mi.Vector3f(*(float(c) for c in to_light)), TAU_STEP * voxel)
-    tau_light = np.array(tau, np.float32).reshape(nz, ny, nx)
+    tau_light = _scatter(near, np.array(tau, np.float32), (nz, ny, nx))
     t_tau = time.perf_counter() - t0
 
     # Multiple scattering, as ``gather`` computes it but on the grid: one more flight from the
@@ -240,18 +238,22 @@ def bake_field(
     t0 = time.perf_counter()
     grid = NodeGrid.build(graph.positions, graph.search_radius, radiance_gather * np.asarray(albedo)[None, :])
     G = grid.lookup(p, (0.05 * node_radius) ** 2, mi.Bool(True))
-    G = _fill_empty(
-        np.stack([np.array(c, np.float32) for c in (G.x, G.y, G.z)], axis=1).reshape(nz, ny, nx, 3)
-    )
+    G = np.stack([np.array(c, np.float32) for c in (G.x, G.y, G.z)], axis=1)
+    G = _fill_empty(_scatter(near, G, (nz, ny, nx, 3)), near.reshape(nz, ny, nx))
     G_tex = mi.Texture3f(mi.TensorXf(G), filter_mode=dr.FilterMode.Linear, wrap_mode=dr.WrapMode.Clamp)
-    ms_shape = tuple(-(-n // MS_COARSEN) for n in shape)
-    q = unit_points(ms_shape) @ u2w[:3, :3].T + u2w[:3, 3]
-    radiance_ms = np.concatenate(
-        [
-            _gather_ms(medium, G_tex, q[a : a + MS_CHUNK], MS_STEP * voxel, seed=a)
-            for a in range(0, len(q), MS_CHUNK)  # chunks bound the device memory, not a loop over points
-        ]
-    ).reshape(*ms_shape[::-1], 3)
+    k = MS_COARSEN  # coarser still where the points to gather would be over MS_MAX_POINTS
+    while True:
+        ms_shape = tuple(-(-n // k) for n in shape)
+        ms_near = _coarse_mask(near.reshape(nz, ny, nx), ms_shape, k)
+        if ms_near.sum() <= MS_MAX_POINTS:
+            break
+        k += 1
+    q = unit_points(ms_shape)[ms_near] @ u2w[:3, :3].T + u2w[:3, 3]
+    L_ms = [
+        _gather_ms(medium, G_tex, q[a : a + MS_CHUNK], MS_STEP * voxel, seed=a)
+        for a in range(0, len(q), MS_CHUNK)  # chunks bound the device memory, not a loop over points
+    ]
+    radiance_ms = _scatter(ms_near, np.concatenate(L_ms or [np.zeros((0, 3))]), (*ms_shape[::-1], 3))
     t_ms = time.perf_counter() - t0
 
     meta = {
@@ -272,31 +274,56 @@ def bake_field(
         "field_ms_s": round(t_ms, 3),
         "field_shape": list(shape),
         "field_ms_shape": list(ms_shape),
+        "field_ms_coarsen": k,
+        "field_points": int(near.sum()),
+        "field_ms_points": int(ms_near.sum()),
     }
     return field, stats
 
 
-def _fill_empty(values: np.ndarray) -> np.ndarray:
-    """Grid points that no node's search range reaches take their nearest reached neighbour's
-    value, so that interpolation at the medium's edge never blends in a false zero."""
+def _scatter(mask: np.ndarray, values: np.ndarray, shape) -> np.ndarray:
+    """A zero array of ``shape`` with ``values`` at the points where the flat ``mask`` is set."""
+    out = np.zeros((mask.size, *values.shape[1:]), np.float32)
+    out[mask.ravel()] = values
+    return out.reshape(shape)
+
+
+def _coarse_mask(near: np.ndarray, shape, k: int) -> np.ndarray:
+    """Flat mask of the coarse (shape = (mx, my, mz)) grid points whose interpolation reaches a
+    fine point of ``near`` ((nz, ny, nx)): its block's, dilated by one coarse point."""
+    from scipy.ndimage import maximum_filter
+
+    mx, my, mz = shape
+    padded = np.pad(near, [(0, m * k - n) for m, n in zip((mz, my, mx), near.shape, strict=True)])
+    coarse = padded.reshape(mz, k, my, k, mx, k).any(axis=(1, 3, 5))
+    return maximum_filter(coarse, size=3, mode="constant").ravel()
+
+
+def _fill_empty(values: np.ndarray, wanted: np.ndarray) -> np.ndarray:
+    """Wanted grid points that no node's search range reaches take their nearest reached
+    neighbour's value, so that interpolation at the medium's edge never blends in a false zero."""
     from scipy.ndimage import distance_transform_edt
 
-    empty = ~(values > 0).any(axis=-1)
-    if not empty.any() or empty.all():
+    reached = (values > 0).any(axis=-1)
+    if reached.all() or not reached.any() or not (wanted & ~reached).any():
         return values
-    idx = distance_transform_edt(empty, return_distances=False, return_indices=True)
-    return values[tuple(idx)]
+    idx = distance_transform_edt(~reached, return_distances=False, return_indices=True)
+    filled = values[tuple(idx)]
+    return np.where((wanted & ~reached)[..., None], filled, values)
 
 
 @dr.syntax
 def _optical_depth(medium, p: mi.Point3f, w: mi.Vector3f, step: float) -> mi.Float:
-    """int_0^boundary sigma_t(p + s w) ds per point, midpoint rule, stopped at TAU_MAX."""
+    """int_0^boundary sigma_t(p + s w) ds per point, midpoint rule, stopped at TAU_MAX; blocks
+    without density are crossed in one step."""
     t, t_end = medium.box_interval(p, w)
     tau = mi.Float(0.0)  # Optical depth accumulator
     active = t < t_end
     while dr.hint(active, label="light_march"):
-        dt = dr.minimum(step, t_end - t)
-        tau += medium.sigma_t(p + (t + 0.5 * dt) * w) * dt
+        sigma_maj, t_leave = medium.block(p, w, t, active)
+        empty = sigma_maj <= 0.0
+        dt = dr.minimum(dr.select(empty, dr.maximum(t_leave - t, 0.0) + 1e-3 * step, step), t_end - t)
+        tau += dr.select(empty, 0.0, medium.sigma_t(p + (t + 0.5 * dt) * w) * dt)
         t += dt
         active &= (t < t_end) & (tau < TAU_MAX)
     return dr.minimum(tau, TAU_MAX)
@@ -326,7 +353,8 @@ def _gather_ms(medium, G_tex, points: np.ndarray, step: float, seed: int) -> np.
 
 @dr.syntax
 def _march_ms(medium, G_tex, o: mi.Point3f, d: mi.Vector3f, step: float) -> mi.Color3f:
-    """int T_r sigma_t G dt along each ray to the box boundary (trapezoid in optical depth)."""
+    """int T_r sigma_t G dt along each ray to the box boundary (trapezoid in optical depth, as the
+    field estimator marches); blocks without density are crossed in one step."""
     t, t_end = medium.box_interval(o, d)
 
     def at(t):
@@ -339,9 +367,14 @@ def _march_ms(medium, G_tex, o: mi.Point3f, d: mi.Vector3f, step: float) -> mi.C
     s0, G0 = at(t)
     active = t < t_end
     while dr.hint(active, label="ms_gather"):
-        dt = dr.minimum(step, t_end - t)
+        # Steps of at most MS_MAX_DTAU optical depth at the block's majorant, between one and
+        # MS_STRIDE voxels; empty blocks in one step
+        sigma_maj, t_leave = medium.block(o, d, t, active)
+        empty = sigma_maj <= 0.0
+        dt = dr.clip(MS_MAX_DTAU / dr.maximum(sigma_maj, 1e-12), step, MS_STRIDE * step)
+        dt = dr.minimum(dr.select(empty, dr.maximum(t_leave - t, 0.0) + 1e-3 * step, dt), t_end - t)
         s1, G1 = at(t + dt)
-        dtau = 0.5 * (s0 + s1) * dt
+        dtau = dr.select(empty, 0.0, 0.5 * (s0 + s1) * dt)
         a = dr.exp(-dtau)
         w1 = dr.select(dtau > 1e-3, (1.0 - a * (1.0 + dtau)) / dr.maximum(dtau, 1e-3), 0.5 * dtau)
         L += Tr * (G0 * (1.0 - a) + (G1 - G0) * w1)

@@ -140,17 +140,12 @@ class FieldTextures:
     Attributes:
         tau: optical depth to the light, 1 channel; ms: radiance after the first scattering, 3
             channels; both trilinear, clamped, over the unit cube.
-        majorant: flat (bz*by*bx,) block majorants; blocks: their counts; block_unit: a block's
-            side in unit-cube coordinates, per axis.
         step: march step, world units.
         max_steps: iteration cap of the march: a ray takes each step and skips each block once.
     """
 
     tau: object
     ms: object
-    majorant: object
-    blocks: tuple
-    block_unit: tuple
     step: float
     max_steps: int
 
@@ -160,20 +155,14 @@ class FieldTextures:
             a = np.ascontiguousarray(a if a.ndim == 4 else a[..., None], np.float32)
             return mi.Texture3f(mi.TensorXf(a), filter_mode=dr.FilterMode.Linear, wrap_mode=dr.WrapMode.Clamp)
 
-        from ..field import BLOCK
-
-        nz, ny, nx = field.sigma_t.shape
-        bz, by, bx = field.majorant.shape
         step = float(field.meta["step"])
         diag = float(np.linalg.norm(np.subtract(*field.meta["world_bbox"][::-1])))
+        blocks = sum(-(-n // 8) for n in field.sigma_t.shape)
         return cls(
             tau=texture(field.tau_light),
             ms=texture(field.radiance_ms),
-            majorant=mi.Float(field.majorant.ravel().astype(np.float32)),
-            blocks=(bx, by, bz),
-            block_unit=(BLOCK / nx, BLOCK / ny, BLOCK / nz),
             step=step,
-            max_steps=int(2 * (diag / step + 3 * (bx + by + bz)) + 16),
+            max_steps=int(2 * (diag / step + 3 * blocks) + 16),
         )
 
 
@@ -281,11 +270,6 @@ class GraphIntegrator(mi.SamplingIntegrator):
         # one jitter per ray shifts the step grid against banding.
         f = self.field
         t, t_end = self.medium.box_interval(o, d)
-        ou = self.medium.world_to_unit @ mi.Point3f(o)
-        du = self.medium.world_to_unit @ mi.Vector3f(d)
-        inv_du = dr.select(dr.abs(du) > 1e-12, dr.rcp(du), dr.inf)
-        blocks = mi.Vector3i(*f.blocks)
-        block_unit = mi.Vector3f(*f.block_unit)
         albedo = mi.Color3f(*self.albedo)
         first = (1.0 - rng.next_float32()) * f.step  # one jitter per ray: the first segment's length
         L = mi.Color3f(0.0)  # Radiance accumulator
@@ -295,16 +279,12 @@ class GraphIntegrator(mi.SamplingIntegrator):
         sigma0, L0 = self._field_in(o + t * d, active)  # values at the segment's start
         steps = mi.UInt32(0)  # Iteration cap: a ray takes each step and skips each block once
         while dr.hint(active, label="field_march"):
-            # Empty-space skipping: the majorant of the block holding t; zero -> jump to its exit
-            pu = ou + t * du
-            b = dr.clip(mi.Vector3i(dr.floor(pu / block_unit)), 0, blocks - 1)
-            maj = dr.gather(mi.Float, f.majorant, b.x + blocks.x * (b.y + blocks.y * b.z), active)
-            lo = mi.Vector3f(b) * block_unit
-            exit_ = dr.select(du > 0, lo + block_unit - pu, lo - pu) * inv_du
-            skip = dr.minimum(dr.minimum(exit_.x, exit_.y), exit_.z) + 1e-3 * f.step
-            empty = maj <= 0.0
+            # Empty-space skipping: a block without density is crossed in one step
+            sigma_maj, t_leave = self.medium.block(o, d, t, active)
+            empty = sigma_maj <= 0.0
             dt = dr.select(steps == 0, first, f.step)
-            dt = dr.minimum(dr.select(empty, dr.maximum(skip, 1e-3 * f.step), dt), t_end - t)
+            dt = dr.select(empty, dr.maximum(t_leave - t, 0.0) + 1e-3 * f.step, dt)
+            dt = dr.minimum(dt, t_end - t)
             sigma1, L1 = self._field_in(o + (t + dt) * d, active)
             # One segment (nothing to add across an empty block)
             dtau = dr.select(empty, 0.0, 0.5 * (sigma0 + sigma1) * dt)
