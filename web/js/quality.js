@@ -64,9 +64,10 @@ export class QualityController {
     else this.msPerCost = 0.5 * this.msPerCost + 0.5 * rate;
   }
 
-  /** Rows of a strip of ``width`` px of the exact march that fit the budget. */
+  /** Rows of a strip of ``width`` px of the exact march that fit two frames' budget (at rest
+   * a strip only delays the reaction to the next move, by at most that). */
   rowsFor(width, exactFactor) {
     if (!Number.isFinite(this.msPerCost)) return 16;
-    return Math.floor(Math.max(this.budget, VSYNC_MS) / (this.msPerCost * width * exactFactor));
+    return Math.floor((2 * Math.max(this.budget, VSYNC_MS)) / (this.msPerCost * width * exactFactor));
   }
 }

@@ -103,7 +103,8 @@ void main() {
   if (tEnd > t) {
     float Tr = 1.0;             // transmittance from the eye
     float dt = (1.0 - jitter(uvec2(gl_FragCoord.xy))) * uStep;  // the first segment's length
-    vec4 f0 = fieldAt(ou + t * du);  // (sigma_t, L_in) at the segment's start
+    vec4 f0 = vec4(0.0);        // (sigma_t, L_in) at the segment's start
+    bool fresh = false;         // whether f0 holds the values at t
     float tBlockEnd = -1.0;     // where the ray leaves the current majorant block
     bool empty = false;         // whether that block holds no medium
     for (int i = 0; i < MAX_STEPS; i++) {
@@ -114,20 +115,26 @@ void main() {
         tBlockEnd = min(min(te.x, te.y), te.z);
         empty = texelFetch(uMaj, ivec3(cell), 0).r <= 0.0;
       }
-      float seg = empty ? max(tBlockEnd - t, 0.0) + 1e-3 * uStep : dt;
-      seg = min(seg, tEnd - t);
-      vec4 f1 = fieldAt(ou + (t + seg) * du);
-      if (!empty) {
-        // One segment in closed form (exponential integrator)
-        float dtau = 0.5 * (f0.x + f1.x) * seg;
-        float segTr = exp(-dtau);
-        float w1 = dtau > 1e-3 ? (1.0 - segTr * (1.0 + dtau)) / dtau : 0.5 * dtau;
-        L += Tr * uAlbedo * (f0.yzw * (1.0 - segTr) + (f1.yzw - f0.yzw) * w1);
-        Tr *= segTr;
-        dt = uStep;
+      if (empty) {
+        // nothing to add across an empty block; the field is read again where medium starts
+        t = min(max(tBlockEnd, t) + 1e-3 * uStep, tEnd);
+        fresh = false;
+        if (t >= tEnd) break;
+        continue;
       }
+      if (!fresh) f0 = fieldAt(ou + t * du);
+      float seg = min(dt, tEnd - t);
+      vec4 f1 = fieldAt(ou + (t + seg) * du);
+      // One segment in closed form (exponential integrator)
+      float dtau = 0.5 * (f0.x + f1.x) * seg;
+      float segTr = exp(-dtau);
+      float w1 = dtau > 1e-3 ? (1.0 - segTr * (1.0 + dtau)) / dtau : 0.5 * dtau;
+      L += Tr * uAlbedo * (f0.yzw * (1.0 - segTr) + (f1.yzw - f0.yzw) * w1);
+      Tr *= segTr;
       t += seg;
       f0 = f1;
+      fresh = true;
+      dt = uStep;
       if (t >= tEnd || Tr < TR_MIN) break;
     }
   }
