@@ -31,7 +31,7 @@ def _finite(v: Vec3, what: str) -> Vec3:
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class VolumeSpec(_Model):

@@ -54,6 +54,7 @@ class DensityField:
     blocks: object
     block_counts: tuple
     block_unit: tuple
+    max_steps: int
 
     @classmethod
     def from_volume(cls, volume: Volume, density_scale: float) -> DensityField:
@@ -66,6 +67,8 @@ class DensityField:
         blocks = block_majorant(grid[..., 0])
         bz, by, bx = blocks.shape
         nz, ny, nx = grid.shape[:3]
+        lo, hi = volume.world_bbox()
+        expected = majorant * float(np.linalg.norm(hi - lo))
         return cls(
             texture,
             world_to_unit,
@@ -74,6 +77,7 @@ class DensityField:
             mi.Float(blocks.ravel()),
             (bx, by, bz),
             (BLOCK / nx, BLOCK / ny, BLOCK / nz),
+            int(min(16 * expected + 1024, 2**31 - 1)),
         )
 
     def sigma_t(self, p: mi.Point3f) -> mi.Float:
@@ -122,13 +126,15 @@ def sample_collision(
     t, t_end = field.box_interval(o, d)
     active = mi.Bool(active) & (t < t_end) & (field.majorant > 0)
     collided = mi.Bool(False)
+    steps = mi.UInt32(0)  # Iteration cap (field.max_steps)
     while dr.hint(active, label="delta_tracking"):
         # Tentative collision with the majorant, accepted with probability sigma_t / majorant
         t += -dr.log(1.0 - rng.next_float32()) / field.majorant
         inside = t < t_end
         real = inside & (rng.next_float32() * field.majorant < field.sigma_t(o + t * d))
         collided |= active & real
-        active &= inside & ~real
+        steps += 1
+        active &= inside & ~real & (steps < field.max_steps)
     return t, collided
 
 
@@ -140,11 +146,13 @@ def ratio_tracking(
     t, t_end = field.box_interval(o, d)
     Tr = mi.Float(1.0)  # Transmittance estimate
     active = mi.Bool(active) & (t < t_end) & (field.majorant > 0)
+    steps = mi.UInt32(0)  # Iteration cap (field.max_steps)
     while dr.hint(active, label="ratio_tracking"):
         t += -dr.log(1.0 - rng.next_float32()) / field.majorant
         active &= t < t_end
         Tr[active] *= 1.0 - field.sigma_t(o + t * d) / field.majorant
-        active &= Tr > 1e-6  # below this the light is gone
+        steps += 1
+        active &= (Tr > 1e-6) & (steps < field.max_steps)  # below 1e-6 the light is gone
     return Tr
 
 

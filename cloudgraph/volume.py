@@ -164,14 +164,14 @@ def vdb_grid_table(path: str | Path) -> list[tuple[str, str]]:
         return []
 
 
-def _value_type(tree_type: str) -> str:
+def value_type(tree_type: str) -> str:
     parts = tree_type.split("_")
     return parts[1] if len(parts) > 2 and parts[0] == "Tree" else tree_type
 
 
 def _pick_grid(path: Path, grids: list[tuple[str, str]], grid: str | None) -> tuple[str, str]:
     """Chooses the named grid, else 'density', else the only float grid."""
-    listing = ", ".join(f"{n!r} ({_value_type(t)})" for n, t in grids) or "none"
+    listing = ", ".join(f"{n!r} ({value_type(t)})" for n, t in grids) or "none"
     by_name = dict(grids)
     if grid is not None:
         if grid not in by_name:
@@ -179,7 +179,7 @@ def _pick_grid(path: Path, grids: list[tuple[str, str]], grid: str | None) -> tu
         return grid, by_name[grid]
     if "density" in by_name:
         return "density", by_name["density"]
-    floats = [(n, t) for n, t in grids if _value_type(t) in ("float", "half", "double")]
+    floats = [(n, t) for n, t in grids if value_type(t) in ("float", "half", "double")]
     if len(floats) == 1:
         return floats[0]
     raise VolumeError(
@@ -195,16 +195,14 @@ def _load_vdb(path: Path, grid: str | None) -> Volume:
     if not table:
         raise VolumeError(f"cannot read {path}: the OpenVDB file is truncated or corrupt")
     name, tree_type = _pick_grid(path, table, grid)
-    value_type = _value_type(tree_type)
-    if value_type not in ("float", "half", "double"):
-        raise VolumeError(
-            f"grid {name!r} in {path} holds {value_type} values; density needs a scalar float grid"
-        )
+    kind = value_type(tree_type)
+    if kind not in ("float", "half", "double"):
+        raise VolumeError(f"grid {name!r} in {path} holds {kind} values; density needs a scalar float grid")
     try:
         g = vdb.read(str(path), name)
     except TypeError as err:  # a grid type these bindings were built without
         bad = [
-            f"{n!r} ({_value_type(t)})" for n, t in table if _value_type(t) not in ("float", "vec3s", "bool")
+            f"{n!r} ({value_type(t)})" for n, t in table if value_type(t) not in ("float", "vec3s", "bool")
         ]
         raise VolumeError(
             f"cannot read {path}: its grid(s) {', '.join(bad) or str(err)} have a type this OpenVDB "
@@ -244,7 +242,7 @@ def _affine(transform) -> np.ndarray:
 
 
 def _check_size(path: Path, dims: tuple[int, int, int]) -> None:
-    n = int(np.prod(np.asarray(dims, dtype=np.int64)))
+    n = int(dims[0]) * int(dims[1]) * int(dims[2])  # Python integers: never overflows
     cap = max_voxels()
     if n > cap:
         raise VolumeError(
@@ -398,7 +396,7 @@ def volume_info(path: str | Path) -> dict:
     path = Path(path)
     grids = []
     if path.is_file() and path.read_bytes()[:3] != b"VOL":
-        grids = [{"name": n, "type": _value_type(t)} for n, t in vdb_grid_table(path)]
+        grids = [{"name": n, "type": value_type(t)} for n, t in vdb_grid_table(path)]
     vol = load_volume(path)
     lo, hi = vol.world_bbox()
     index_max = [a + n - 1 for a, n in zip(vol.index_min, vol.shape, strict=True)]

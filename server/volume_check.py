@@ -39,11 +39,11 @@ def grid_stats(path: Path, name: str, max_voxels: int) -> dict[str, dict]:
     import pyopenvdb as vdb
 
     from cloudgraph.errors import VolumeError
-    from cloudgraph.volume import _value_type, vdb_grid_table
+    from cloudgraph.volume import value_type, vdb_grid_table
 
     out = {}
     for grid, tree in vdb_grid_table(path):
-        if _value_type(tree) not in _FLOAT:
+        if value_type(tree) not in _FLOAT:
             continue
         try:
             g = vdb.read(str(path), grid)

@@ -86,3 +86,9 @@ def test_schema_lists_every_section():
     schema = json_schema()
     assert set(schema["required"]) == {"volume", "camera"}
     assert {"volume", "medium", "light", "camera", "render"} <= set(schema["properties"])
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), -float("inf")])
+def test_non_finite_numbers_are_refused_with_the_field_named(value):
+    with pytest.raises(SceneError, match="density_scale"):
+        parse_scene({"volume": {"path": "a.vdb"}, "medium": {"density_scale": value}})
