@@ -32,12 +32,12 @@ run: setup
 	./bin/run-service
 
 test: setup
-	$(VENV)/bin/ruff check cloudgraph server worker tests
+	$(VENV)/bin/ruff check cloudgraph cloudgraph_service server worker tests
 	$(VENV)/bin/python -m pytest -q
 
 lint: setup
-	$(VENV)/bin/ruff check cloudgraph server worker tests
-	$(VENV)/bin/ruff format --check cloudgraph server worker tests
+	$(VENV)/bin/ruff check cloudgraph cloudgraph_service server worker tests
+	$(VENV)/bin/ruff format --check cloudgraph cloudgraph_service server worker tests
 
 bench: setup
 	$(VENV)/bin/cloudgraph bench
