@@ -30,6 +30,8 @@ Arrays: ``sigma_t`` (per world unit), ``tau_light``, ``radiance_ms`` (RGB, per-c
 and ``majorant`` (max sigma_t over blocks of :data:`BLOCK`^3 field voxels, dilated by one voxel:
 empty-space skipping). Grid values sit at texel centres, (i + 0.5) / n of the unit cube that
 ``Volume.unit_to_world`` maps onto the medium box, and are interpolated trilinearly (clamped).
+Only points within one voxel of some density are baked (the rest hold 0): interpolation at a
+point where sigma_t > 0 reads no other.
 """
 
 from __future__ import annotations
