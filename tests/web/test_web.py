@@ -317,6 +317,7 @@ def test_realtime_view_draws_the_field(page):
     assert page.is_hidden("#view-img") and page.is_hidden("#view-overlay")
     assert errors_shown(page) == []
     shot(page, "05-realtime")
+    print(f"rest: {width} px drawn in {int(vp['restMs']) / 1000:.2f} s; {info}")
 
 
 def test_realtime_orbit_holds_frame_rate(page):
@@ -454,9 +455,9 @@ def test_relight_keeps_old_field_then_swaps(page):
     relit = vp["fieldKey"] != old_key  # a very quick relight may be done already
     assert relit or page.get_attribute("#relight-info", "data-seconds") is None
     shot(page, "08c-relighting")
-    page.wait_for_selector("#relight-info[data-seconds]", timeout=180_000)
+    page.wait_for_selector("#relight-info[data-seconds]", timeout=600_000)
     seconds = float(page.get_attribute("#relight-info", "data-seconds"))
-    assert 0 < seconds < 180
+    assert 0 < seconds < 600
     assert "Relit in" in page.inner_text("#relight-info")
     new_key = page.get_attribute("#viewport", "data-field-key")
     assert re.fullmatch(r"[0-9a-f]{64}", new_key) and new_key != old_key
@@ -547,23 +548,26 @@ def test_no_unexpected_page_errors(page):
     assert unexpected == []
 
 
-def _open_scene(pg, url: str) -> None:
-    """Loads the page, picks the uploaded smoke and precomputes (found on the server)."""
-    pg.goto(url + "/")
+def _open_scene(pg, service, data_dir) -> None:
+    """Loads the page with smoke1 uploaded (idempotent) and precomputes its draft cache (found
+    on the server when an earlier test built it)."""
+    with service.client() as client, (data_dir / "smoke1.vdb").open("rb") as f:
+        assert client.post("/v1/volumes", files={"file": ("smoke1.vdb", f)}).status_code in (200, 201)
+    pg.goto(service.url + "/")
     pg.wait_for_selector("#volume-select option[value]:not([value=''])", state="attached")
     pg.select_option("#quality", "draft")
     pg.click("#precompute")
-    pg.wait_for_selector("#cache-state[data-state=ready], #cache-state[data-state=failed]")
+    pg.wait_for_selector("#cache-state[data-state=ready], #cache-state[data-state=failed]", timeout=300_000)
     assert pg.get_attribute("#cache-state", "data-state") == "ready", errors_shown(pg)
 
 
-def test_fallback_without_webgl(playwright, service):
+def test_fallback_without_webgl(playwright, service, data_dir):
     """Chromium without WebGL: the page says so and the server renders the viewport
     progressively (fast previews while moving, then larger and averaged passes at rest)."""
     b = playwright.chromium.launch(executable_path=chromium_path(), args=NO_WEBGL_ARGS)
     try:
         pg = new_page(b)
-        _open_scene(pg, service.url)
+        _open_scene(pg, service, data_dir)
         pg.wait_for_selector("#viewport[data-renderer=server]")
         assert "Real-time view unavailable: WebGL2 is disabled or unavailable" in pg.inner_text("#view-mode")
         assert "server's progressive renders" in pg.inner_text("#view-mode")
@@ -607,17 +611,17 @@ def test_fallback_without_webgl(playwright, service):
         b.close()
 
 
-def test_broken_field_falls_back_with_error(browser, service):
+def test_broken_field_falls_back_with_error(browser, service, data_dir):
     """A field that cannot be decoded is an error in words, and the server renders instead."""
     pg = new_page(browser)
     try:
         pg.route(
             "**/v1/caches/*/field",
             lambda route: route.fulfill(
-                status=200, content_type="application/octet-stream", body=b"<html>oops"
+                status=200, content_type="application/octet-stream", body=b"<html>" + b"oops " * 40
             ),
         )
-        _open_scene(pg, service.url)
+        _open_scene(pg, service, data_dir)
         pg.wait_for_selector("#errors li")
         message = errors_shown(pg)[0]
         assert "Real-time view" in message and "not a cloudgraph field" in message, message
@@ -633,21 +637,22 @@ def test_broken_field_falls_back_with_error(browser, service):
 DISNEY_16 = (154, 86, 126)
 
 
-def test_disney_sized_field_fits_in_memory(browser, service):
+def test_disney_sized_field_fits_in_memory(browser, service, data_dir):
     """A field the size of Disney 1/16's (126x86x154 voxels) is drawn with at most 200 MB of
     page memory: the JS heap after loading plus the GPU textures."""
-    body = encode(make_field(shape=DISNEY_16, block=8), compress=True)
+    # (uncompressed: Chromium does not gunzip a response that a test fulfils)
+    body = encode(make_field(shape=DISNEY_16, block=8))
     pg = new_page(browser)
     try:
         pg.route(
             "**/v1/caches/*/field",
             lambda route: route.fulfill(
                 status=200,
-                headers={"Content-Encoding": "gzip", "Content-Type": "application/octet-stream"},
+                headers={"Content-Type": "application/octet-stream"},
                 body=body,
             ),
         )
-        _open_scene(pg, service.url)
+        _open_scene(pg, service, data_dir)
         pg.wait_for_selector("#viewport[data-renderer=webgl][data-state=rest]")
         info = pg.inner_text("#view-info")
         assert "field 126×86×154" in info, info

@@ -207,7 +207,8 @@ export class RealtimeView {
     });
     const fps = state === "moving" && Number.isFinite(this.fps.value) ? ` · ${this.fps.value.toFixed(0)} fps` : "";
     const step = stepScale !== 1 ? ` · step ×${stepScale}` : "";
-    setText(this.info, `WebGL2 · ${size}×${size} px${step}${fps} · ${state} · ${this.fieldInfo || ""}`);
+    const took = state === "rest" ? ` in ${formatSeconds(Number(this.element.dataset.restMs) / 1000)}` : "";
+    setText(this.info, `WebGL2 · ${size}×${size} px${step}${fps} · ${state}${took} · ${this.fieldInfo || ""}`);
   }
 
   // --- refinement at rest: the full-size image in strips, shown when complete ---
@@ -223,7 +224,7 @@ export class RealtimeView {
     gl.bindFramebuffer(gl.FRAMEBUFFER, fbo);
     gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, tex, 0);
     gl.bindFramebuffer(gl.FRAMEBUFFER, null);
-    this.refine = { cam: { ...cam, width: size, height: size }, size, y: 0, fbo, tex };
+    this.refine = { cam: { ...cam, width: size, height: size }, size, y: 0, fbo, tex, t0: performance.now() };
     this.element.dataset.state = "refining";
   }
 
@@ -256,6 +257,7 @@ export class RealtimeView {
     gl.bindFramebuffer(gl.READ_FRAMEBUFFER, null);
     this.endRefine();
     this.restVersion = this.version;
+    this.element.dataset.restMs = String(Math.round(performance.now() - r.t0));
     this.frameDrawn(r.size, 1, "rest");
     if (this.finalWanted) this.requestFinal();
   }
