@@ -137,3 +137,45 @@ def test_moving_camera_texture_is_close(page):
     (img,) = render(page, field, cams, exposure=1.0, fast=True)
     ref = reference_render(field, cams[0], exposure=1.0)
     assert rel_mae(img, ref) < 0.03
+
+
+def test_field_beyond_device_limits_is_refused_in_words(page):
+    r = page.evaluate(
+        """async () => {
+        const { GLView } = await import('/js/glview.js');
+        const view = new GLView(document.createElement('canvas'));
+        const grid = (n) => ({ shape: [4, 4, n] });
+        const field = (n) => ({ arrays: { sigma_t: grid(n), tau_light: grid(n),
+          radiance_ms: { shape: [2, 2, 2, 3] }, majorant: { shape: [1, 1, 1] } } });
+        return { max: view.maxSize, ok: view.tooLarge(field(view.maxSize)),
+                 big: view.tooLarge(field(view.maxSize + 1)), bytes: view.tooLarge(field(64), 100) };
+      }"""
+    )
+    assert r["ok"] == ""
+    assert f"exceeds this device's 3D texture limit of {r['max']}" in r["big"]
+    assert "MiB of textures" in r["bytes"]
+
+
+def test_quality_ladder_and_controller(page):
+    """Levels cost less and less, never below 128 px; slow frames move down at once to a level
+    that fits, frames that keep up with the display creep back up."""
+    r = page.evaluate(
+        """async () => {
+        const q = await import('/js/quality.js');
+        const levels = q.ladder(640);
+        const c = new q.QualityController(640);
+        const first = c.current();
+        for (let i = 0; i < 3; i++) c.report(200, c.current().cost);  // 200 ms frames
+        const slow = c.current();
+        const ups = [];
+        for (let i = 0; i < 60; i++) { c.report(16.7, c.current().cost); ups.push(c.current().cost); }
+        return { levels, first, slow, ups };
+      }"""
+    )
+    costs = [lv["cost"] for lv in r["levels"]]
+    assert costs == sorted(costs, reverse=True) and len(set(costs)) == len(costs)
+    assert r["levels"][0] == {"size": 640, "stepScale": 1, "cost": 640 * 640}
+    assert min(lv["size"] for lv in r["levels"]) == 128 and r["levels"][-1]["stepScale"] >= 4
+    # a 200 ms frame: the cost that fits 16 ms is about 1/12 of it
+    assert r["slow"]["cost"] <= r["first"]["cost"] * 1.15 * 16.7 / 200 * 1.01
+    assert r["ups"][-1] == r["levels"][0]["cost"], "frames at the display's rate did not creep up"

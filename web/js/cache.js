@@ -15,9 +15,10 @@ const STATUS_WORDS = {
 };
 
 export class CachePanel {
-  /** request() -> { key, body } for POST /v1/caches (throws in words); onReady(key) when one is ready. */
-  constructor({ api, status, request, onReady }) {
-    Object.assign(this, { api, status, request, onReady });
+  /** request() -> { key, body } for POST /v1/caches (throws in words); onReady(key) when one is
+   * ready; onFailed(key) when its precompute failed or was cancelled. */
+  constructor({ api, status, request, onReady, onFailed = () => {} }) {
+    Object.assign(this, { api, status, request, onReady, onFailed });
     this.button = $("#precompute");
     this.cancelButton = $("#precompute-cancel");
     this.bar = $("#cache-progress");
@@ -127,7 +128,10 @@ export class CachePanel {
         this.cancelButton.disabled = true;
       }
     }
-    if (!this.ready.has(run.key)) return;
+    if (!this.ready.has(run.key)) {
+      if (!run.controller.signal.aborted) this.onFailed(run.key);
+      return;
+    }
     this.bar.value = 1;
     setText(this.stage, found ? "ready (found on the server) · 100 %" : "done · 100 %");
     this.setState("ready", "ready");

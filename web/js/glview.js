@@ -2,7 +2,7 @@
 // read-back of an image at a given size for comparisons. Knows nothing of the DOM around it.
 
 import { fragmentShader, VERTEX } from "./shaders.js";
-import { halfToFloat } from "./field.js";
+import { interleaved, packedField } from "./fieldtex.js";
 import { linearToSrgb8, srgbToLinear } from "./imagemath.js";
 import { cross, normalize, sub } from "./camera.js";
 
@@ -103,15 +103,6 @@ export class GLView {
   setField(field) {
     const gl = this.gl;
     const { sigma_t, tau_light, radiance_ms, majorant } = field.arrays;
-    // sigma_t and tau_light share one grid: one RG texture, one fetch per march step.
-    const n = sigma_t.data.length;
-    const st = new Uint16Array(2 * n);
-    const s = sigma_t.data;
-    const tau = tau_light.data;
-    for (let i = 0; i < n; i++) {
-      st[2 * i] = s[i];
-      st[2 * i + 1] = tau[i];
-    }
     const make = (arr, internal, format, data, filter) => {
       const [nz, ny, nx] = arr.shape;
       const t = gl.createTexture();
@@ -147,7 +138,7 @@ export class GLView {
       return t;
     };
     const textures = {
-      densTau: make(sigma_t, gl.RG16F, gl.RG, st, gl.LINEAR),
+      densTau: make(sigma_t, gl.RG16F, gl.RG, interleaved(sigma_t.data, tau_light.data), gl.LINEAR),
       rad: make(radiance_ms, gl.RGB16F, gl.RGB, radiance_ms.data, gl.LINEAR),
       maj: make(majorant, gl.R16F, gl.RED, majorant.data, gl.NEAREST),
       packed: make32(sigma_t, packedField(field)),
@@ -292,70 +283,4 @@ export class GLView {
     }
     return out;
   }
-}
-
-const HALF = new Float32Array(65536);
-for (let h = 0; h < 65536; h++) HALF[h] = halfToFloat(h);
-
-/** Trilinear weights that resample an axis of m texel centres at n texel centres. */
-function axisWeights(n, m) {
-  const i0 = new Int32Array(n);
-  const i1 = new Int32Array(n);
-  const w = new Float32Array(n);
-  for (let i = 0; i < n; i++) {
-    const x = Math.min(m - 1, Math.max(0, ((i + 0.5) * m) / n - 0.5));
-    i0[i] = Math.floor(x);
-    i1[i] = Math.min(m - 1, i0[i] + 1);
-    w[i] = x - i0[i];
-  }
-  return { i0, i1, w };
-}
-
-/**
- * The moving camera's texture: per density voxel (sigma_t / scale, L_in r, g, b) with
- * L_in = E exp(-tau_light) / 4pi + radiance_ms (resampled to the density grid). Float32 RGBA.
- */
-export function packedField(field) {
-  const { sigma_t, tau_light, radiance_ms } = field.arrays;
-  const [nz, ny, nx] = sigma_t.shape;
-  const [mz, my, mx] = radiance_ms.shape;
-  const [ex, ey, ez] = field.light.irradiance.map((e) => e / (4 * Math.PI));
-  const [sr, sg, sb] = radiance_ms.scale;
-  const tauScale = Number(tau_light.scale);
-  const rad = radiance_ms.data;
-  const X = axisWeights(nx, mx);
-  const Y = axisWeights(ny, my);
-  const Z = axisWeights(nz, mz);
-  const out = new Float32Array(4 * nx * ny * nz);
-  const c = [0, 0, 0];
-  let v = 0;
-  for (let k = 0; k < nz; k++) {
-    const wz = Z.w[k];
-    const z0 = Z.i0[k] * my;
-    const z1 = Z.i1[k] * my;
-    for (let j = 0; j < ny; j++) {
-      const wy = Y.w[j];
-      const r00 = (z0 + Y.i0[j]) * mx;
-      const r01 = (z0 + Y.i1[j]) * mx;
-      const r10 = (z1 + Y.i0[j]) * mx;
-      const r11 = (z1 + Y.i1[j]) * mx;
-      for (let i = 0; i < nx; i++, v++) {
-        const wx = X.w[i];
-        const a = X.i0[i];
-        const b = X.i1[i];
-        for (let ch = 0; ch < 3; ch++) {
-          const at = (row, col) => HALF[rad[3 * (row + col) + ch]];
-          const y0 = (1 - wz) * ((1 - wx) * at(r00, a) + wx * at(r00, b)) + wz * ((1 - wx) * at(r10, a) + wx * at(r10, b));
-          const y1 = (1 - wz) * ((1 - wx) * at(r01, a) + wx * at(r01, b)) + wz * ((1 - wx) * at(r11, a) + wx * at(r11, b));
-          c[ch] = (1 - wy) * y0 + wy * y1;
-        }
-        const direct = Math.exp(-tauScale * HALF[tau_light.data[v]]);
-        out[4 * v] = HALF[sigma_t.data[v]];
-        out[4 * v + 1] = ex * direct + sr * c[0];
-        out[4 * v + 2] = ey * direct + sg * c[1];
-        out[4 * v + 3] = ez * direct + sb * c[2];
-      }
-    }
-  }
-  return out;
 }

@@ -101,6 +101,11 @@ const cache = new CachePanel({
     };
   },
   onReady: () => sceneChanged(),
+  onFailed: (key) => {
+    if (!relight || relight.key !== key) return;
+    relight = null;
+    setText(relightInfo, "The relight did not finish; still drawing the previous light.");
+  },
 });
 
 new ComparePanel({ api, status, camera, buildRequest });
