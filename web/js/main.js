@@ -123,7 +123,9 @@ new AnimationPanel({
 });
 
 /** The camera's numbers: data attributes at once (tests and tools read them), the text and
- * the light widget's camera dot once a frame (a mouse sends more moves than frames). */
+ * the light widget's camera dot at most every CAMERA_TEXT_MS (a mouse sends more moves than
+ * frames, and each text change costs a layout and a repaint). */
+const CAMERA_TEXT_MS = 100;
 let cameraTextPending = false;
 function showCamera() {
   const info = $("#camera-info");
@@ -131,11 +133,11 @@ function showCamera() {
   info.dataset.target = JSON.stringify(camera.target);
   if (cameraTextPending) return;
   cameraTextPending = true;
-  requestAnimationFrame(() => {
+  setTimeout(() => {
     cameraTextPending = false;
     setText(info, camera.describe());
     scene.light.setCamera(camera.yaw);
-  });
+  }, CAMERA_TEXT_MS);
 }
 
 function cameraMoved() {

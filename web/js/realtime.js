@@ -38,7 +38,8 @@ export class RealtimeView {
     this.lastMove = -Infinity;
     this.lastDraw = null; // { at, cost } of the previous tick, if it drew
     this.drawnVersion = -1; // the camera version of the last moving frame
-    this.refine = null; // { cam, rows, y, fbo, tex, width, height }
+    this.refine = null; // { cam, size, y, fbo, tex, t0 } while the full-size frame is drawn
+    this.restShown = null; // { t0, size } from its completion to the next frame
     this.finalWanted = false;
     this.finalReq = null;
     this.version = 0;
@@ -120,6 +121,7 @@ export class RealtimeView {
   /** The camera moved: fast frames follow it, refinement and the final frame stop. */
   cameraMoved() {
     this.lastMove = performance.now();
+    this.restShown = null;
     this.endRefine();
     this.cancelFinal();
     this.img.hidden = true;
@@ -130,6 +132,7 @@ export class RealtimeView {
 
   /** Exposure or the field changed: the resting view is drawn again. */
   redraw() {
+    this.restShown = null;
     this.endRefine();
     this.cancelFinal();
     this.img.hidden = true;
@@ -161,6 +164,15 @@ export class RealtimeView {
     if (this.lastDraw) this.quality.report(now - this.lastDraw.at, this.lastDraw.cost);
     this.lastDraw = null;
     if (!this.active || !this.gl.field) return;
+    if (this.restShown) {
+      // the full-size frame has been drawn and presented: the view is at rest
+      const { t0, size } = this.restShown;
+      this.restShown = null;
+      this.element.dataset.restMs = String(Math.round(now - t0));
+      this.frameDrawn(size, 1, "rest");
+      if (this.finalWanted) this.requestFinal();
+      return;
+    }
     if (now - this.lastMove < REST_MS) {
       if (this.drawnVersion === this.version) {
         this.restSoon(); // nothing new to draw: wait for the next move, or for the rest
@@ -205,6 +217,10 @@ export class RealtimeView {
       stepScale: String(stepScale),
       state,
     });
+    // while moving, the text only when the frame rate is recounted (a text change costs a
+    // layout and a repaint of its own, every frame)
+    if (state === "moving" && this.info.dataset.state === "moving" && this.fps.since !== now) return;
+    this.info.dataset.state = state;
     const fps = state === "moving" && Number.isFinite(this.fps.value) ? ` · ${this.fps.value.toFixed(0)} fps` : "";
     const step = stepScale !== 1 ? ` · step ×${stepScale}` : "";
     const took = state === "rest" ? ` in ${formatSeconds(Number(this.element.dataset.restMs) / 1000)}` : "";
@@ -257,9 +273,8 @@ export class RealtimeView {
     gl.bindFramebuffer(gl.READ_FRAMEBUFFER, null);
     this.endRefine();
     this.restVersion = this.version;
-    this.element.dataset.restMs = String(Math.round(performance.now() - r.t0));
-    this.frameDrawn(r.size, 1, "rest");
-    if (this.finalWanted) this.requestFinal();
+    this.restShown = { t0: r.t0, size: r.size }; // "rest" once the next frame begins
+    this.schedule();
   }
 
   endRefine() {
