@@ -247,8 +247,9 @@ export class RealtimeView {
   stepRefine(now) {
     const r = this.refine;
     const gl = this.gl.gl;
-    // one strip a frame, as many rows as the budget holds
-    const rows = Math.max(4, Math.min(r.size - r.y, this.quality.rowsFor(r.size, EXACT_COST)));
+    // one strip a frame, as many rows as the budget holds, but at most 8 strips: where a frame
+    // costs mostly its fixed overhead (a software renderer), tiny strips would add up to seconds
+    const rows = Math.min(r.size - r.y, Math.max(Math.ceil(r.size / 8), this.quality.rowsFor(r.size, EXACT_COST)));
     this.lastDraw = { at: now, cost: (rows * r.size * EXACT_COST) };
     gl.bindFramebuffer(gl.FRAMEBUFFER, r.fbo);
     gl.enable(gl.SCISSOR_TEST);
