@@ -633,6 +633,24 @@ def test_broken_field_falls_back_with_error(browser, service, data_dir):
         pg.context.close()
 
 
+def test_lost_gpu_context_falls_back(browser, service, data_dir):
+    """When the GPU drops the WebGL context, the page says so and the server renders instead."""
+    pg = new_page(browser)
+    try:
+        _open_scene(pg, service, data_dir)
+        _wait_rest(pg, 0)
+        pg.evaluate(
+            """() => document.querySelector('#view-canvas').getContext('webgl2')
+                 .getExtension('WEBGL_lose_context').loseContext()"""
+        )
+        pg.wait_for_selector("#viewport[data-renderer=server]")
+        assert "the GPU dropped the WebGL context" in pg.inner_text("#view-mode")
+        assert any("WebGL context lost" in m for m in errors_shown(pg))
+        _wait_final(pg, 0)
+    finally:
+        pg.context.close()
+
+
 #: The Disney cloud at 1/16 resolution: its field's grid.
 DISNEY_16 = (154, 86, 126)
 

@@ -72,6 +72,10 @@ try {
     camera,
     exposure: () => readNumber(exposure, { min: -20, max: 20 }),
     buildRequest,
+    onLost: () => {
+      realtimeMissing = "the GPU dropped the WebGL context";
+      sceneChanged();
+    },
   });
 } catch (err) {
   realtimeMissing = err.message;
@@ -179,7 +183,7 @@ function sameGraph(a, b) {
 /** Whether the viewport draws the field itself for this scene key; shows why not. */
 function chooseRenderer(key) {
   let why = "";
-  if (!realtime) why = `Real-time view unavailable: ${realtimeMissing}.`;
+  if (!realtime || realtime.lost) why = `Real-time view unavailable: ${realtimeMissing}.`;
   else if (viewer.integrator !== "graph") why = "volpath frames come from the server.";
   else if (fieldFailed.has(key)) why = `Real-time view unavailable: ${fieldFailed.get(key)}.`;
   const webgl = !why;

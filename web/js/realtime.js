@@ -1,7 +1,7 @@
 // The real-time viewport: the page draws the cache's radiance field itself (glview.js). While
 // the camera moves it draws small, fast frames (quality.js holds the frame budget); once the
-// camera rests it redraws at full size with the field's own step, in strips of about one
-// frame's work each so that a slow GPU never stalls the next move; then, if asked, the server
+// camera rests it redraws at full size with the field's own step, in strips of about two
+// frames' work each so that a slow GPU never stalls the next move; then, if asked, the server
 // renders a `gather` final frame that is shown over it. Hooks on the viewport element:
 // data-renderer="webgl", data-frames (frames drawn), data-internal (size of the last frame),
 // data-state (moving, refining, rest).
@@ -22,10 +22,11 @@ export class RealtimeView {
   /**
    * element: the viewport box; canvas: its <canvas>; img: its <img> (the final frame);
    * info: a text element; exposure(): stops; buildRequest(cameraSpec, spp, integrator) -> a
-   * POST /v1/renders body. Throws when WebGL2 is missing (the caller falls back).
+   * POST /v1/renders body; onLost(): the GPU dropped the context (the caller falls back).
+   * Throws when WebGL2 is missing (the caller falls back).
    */
-  constructor({ element, canvas, img, info, api, status, camera, exposure, buildRequest }) {
-    Object.assign(this, { element, canvas, img, info, api, status, camera, exposure, buildRequest });
+  constructor({ element, canvas, img, info, api, status, camera, exposure, buildRequest, onLost }) {
+    Object.assign(this, { element, canvas, img, info, api, status, camera, exposure, buildRequest, onLost });
     this.gl = new GLView(canvas);
     this.quality = new QualityController(this.fullSize());
     this.active = false;
@@ -47,7 +48,9 @@ export class RealtimeView {
     canvas.addEventListener("webglcontextlost", (e) => {
       e.preventDefault();
       this.lost = true;
-      this.status.error("the GPU dropped the real-time view (WebGL context lost); reload the page");
+      this.stop();
+      this.status.error("the GPU dropped the real-time view (WebGL context lost); reload the page to draw it again");
+      if (this.onLost) this.onLost();
     });
   }
 
