@@ -278,11 +278,12 @@ class GraphIntegrator(mi.SamplingIntegrator):
         t = dr.select(active, t, 0.0)  # rays that miss may have no finite entry point
         sigma0, L0 = self._field_in(o + t * d, active)  # values at the segment's start
         steps = mi.UInt32(0)  # Iteration cap: a ray takes each step and skips each block once
+        started = mi.Bool(False)  # Whether the ray has reached a block with medium (and jittered)
         while dr.hint(active, label="field_march"):
             # Empty-space skipping: a block without density is crossed in one step
             sigma_maj, t_leave = self.medium.block(o, d, t, active)
             empty = sigma_maj <= 0.0
-            dt = dr.select(steps == 0, first, f.step)
+            dt = dr.select(started, f.step, first)  # the jitter applies where the medium begins
             dt = dr.select(empty, dr.maximum(t_leave - t, 0.0) + 1e-3 * f.step, dt)
             dt = dr.minimum(dt, t_end - t)
             sigma1, L1 = self._field_in(o + (t + dt) * d, active)
@@ -295,6 +296,7 @@ class GraphIntegrator(mi.SamplingIntegrator):
             t += dt
             sigma0, L0 = sigma1, L1
             steps += 1
+            started |= ~empty
             active &= (t < t_end) & (Tr > FIELD_TR_MIN) & (steps < f.max_steps)
         return L
 
