@@ -10,10 +10,11 @@ the density grid, split as the ``gather`` estimator splits it:
   :data:`TAU_STEP` voxels). Optical depth, not transmittance, is stored: it is linear along the
   light in a homogeneous medium, so trilinear interpolation keeps single scattering exact there,
   where interpolating exp(-tau) would overestimate it;
-- everything after the first scattering, from the graph: L_ms(a) = sum_b C[a, b] albedo L'(b),
-  the node radiance one collision after the node (T L' with the ``radiance_gather`` that the
-  ``gather`` estimator looks up), evaluated at the grid points by Eq. 4.25. It is smooth, so it
-  lives on a grid :data:`MS_COARSEN` times coarser per axis (more for large media).
+- everything after the first scattering, from the graph, as ``gather`` computes it at its
+  camera collision: one more flight from the grid point to p'', where albedo L'_search (the
+  ``radiance_gather`` of Eq. 4.25) stands in for the rest; the flight is integrated over
+  :data:`MS_DIRECTIONS` directions in closed form, not sampled. It is smooth, so it lives on a
+  grid :data:`MS_COARSEN` times coarser per axis (more for large media).
 
 A camera render is then a deterministic ray march with two texture lookups per step (the
 ``field`` estimator of the graph integrator, and the page's WebGL view). One file, the same bytes
