@@ -124,13 +124,7 @@ export class RealtimeView {
   /** The camera moved: fast frames follow it, refinement and the final frame stop. */
   cameraMoved() {
     this.lastMove = performance.now();
-    this.restShown = null;
-    this.endRefine();
-    this.cancelFinal();
-    this.img.hidden = true;
-    delete this.element.dataset.final;
-    this.version++;
-    this.schedule();
+    this.redraw();
   }
 
   /** Exposure or the field changed: the resting view is drawn again. */
