@@ -48,7 +48,7 @@ import mitsuba as mi
 import numpy as np
 from scipy.ndimage import maximum_filter
 
-from .tracing import BLOCK, DensityField, block_majorant
+from .tracing import BLOCK, DensityField, block_majorant, exponential_segment, linear_texture, step_length
 
 MAGIC = b"CGFIELD1"
 VERSION = 1
@@ -243,7 +243,7 @@ def bake_field(
     G = grid.lookup(p, (0.05 * node_radius) ** 2, mi.Bool(True))
     G = np.stack([np.array(c, np.float32) for c in (G.x, G.y, G.z)], axis=1)
     G = _fill_empty(_scatter(near, G, (nz, ny, nx, 3)), near.reshape(nz, ny, nx))
-    G_tex = mi.Texture3f(mi.TensorXf(G), filter_mode=dr.FilterMode.Linear, wrap_mode=dr.WrapMode.Clamp)
+    G_tex = linear_texture(G)
     k = MS_COARSEN  # coarser still where the points to gather would be over MS_MAX_POINTS
     while True:
         ms_shape = tuple(-(-n // k) for n in shape)
@@ -325,7 +325,7 @@ def _optical_depth(medium, p: mi.Point3f, w: mi.Vector3f, step: float) -> mi.Flo
     while dr.hint(active, label="light_march"):
         sigma_maj, t_leave = medium.block(p, w, t, active)
         empty = sigma_maj <= 0.0
-        dt = dr.minimum(dr.select(empty, dr.maximum(t_leave - t, 0.0) + 1e-3 * step, step), t_end - t)
+        dt = step_length(empty, t, t_leave, t_end, step, 1e-3 * step)
         tau += dr.select(empty, 0.0, medium.sigma_t(p + (t + 0.5 * dt) * w) * dt)
         t += dt
         active &= (t < t_end) & (tau < TAU_MAX)
@@ -375,13 +375,11 @@ def _march_ms(medium, G_tex, o: mi.Point3f, d: mi.Vector3f, step: float) -> mi.C
         sigma_maj, t_leave = medium.block(o, d, t, active)
         empty = sigma_maj <= 0.0
         dt = dr.clip(MS_MAX_DTAU / dr.maximum(sigma_maj, 1e-12), step, MS_STRIDE * step)
-        dt = dr.minimum(dr.select(empty, dr.maximum(t_leave - t, 0.0) + 1e-3 * step, dt), t_end - t)
+        dt = step_length(empty, t, t_leave, t_end, dt, 1e-3 * step)
         s1, G1 = at(t + dt)
-        dtau = dr.select(empty, 0.0, 0.5 * (s0 + s1) * dt)
-        a = dr.exp(-dtau)
-        w1 = dr.select(dtau > 1e-3, (1.0 - a * (1.0 + dtau)) / dr.maximum(dtau, 1e-3), 0.5 * dtau)
-        L += Tr * (G0 * (1.0 - a) + (G1 - G0) * w1)
-        Tr *= a
+        seg_Tr, seg_G = exponential_segment(dr.select(empty, 0.0, 0.5 * (s0 + s1) * dt), G0, G1)
+        L += Tr * seg_G
+        Tr *= seg_Tr
         t += dt
         s0, G0 = s1, G1
         active &= (t < t_end) & (Tr > MS_TR_MIN)

@@ -22,6 +22,13 @@ from .volume import Volume
 BLOCK = 8
 
 
+def linear_texture(values: np.ndarray):
+    """A 3D texture over the unit cube from (nz, ny, nx[, channels]) values at texel centres:
+    trilinear, clamped at the edges (as Mitsuba's ``gridvolume``)."""
+    a = np.ascontiguousarray(values if values.ndim == 4 else values[..., None], np.float32)
+    return mi.Texture3f(mi.TensorXf(a), filter_mode=dr.FilterMode.Linear, wrap_mode=dr.WrapMode.Clamp)
+
+
 def block_majorant(grid: np.ndarray, block: int = BLOCK) -> np.ndarray:
     """(bz, by, bx) max of a (nz, ny, nx) grid over blocks of block^3 voxels, dilated by one voxel
     first, so that trilinear interpolation anywhere inside a block never exceeds it."""
@@ -59,9 +66,7 @@ class DensityField:
     @classmethod
     def from_volume(cls, volume: Volume, density_scale: float) -> DensityField:
         grid = np.ascontiguousarray(volume.density.transpose(2, 1, 0)[..., None], np.float32)
-        texture = mi.Texture3f(
-            mi.TensorXf(grid), filter_mode=dr.FilterMode.Linear, wrap_mode=dr.WrapMode.Clamp
-        )
+        texture = linear_texture(grid)
         world_to_unit = mi.Transform4f(np.linalg.inv(volume.unit_to_world).tolist())
         majorant = float(volume.density.max()) * float(density_scale)
         blocks = block_majorant(grid[..., 0])
@@ -154,6 +159,26 @@ def ratio_tracking(
         steps += 1
         active &= (Tr > 1e-6) & (steps < field.max_steps)  # below 1e-6 the light is gone
     return Tr
+
+
+def step_length(
+    empty: mi.Bool, t: mi.Float, t_leave: mi.Float, t_end: mi.Float, step, overshoot: float
+) -> mi.Float:
+    """The next march step: ``step``, or where the block is empty (``DensityField.block``) across
+    it to ``overshoot`` past its exit (a fixed length, so that a skip always moves on); never past
+    t_end."""
+    skip = dr.maximum(t_leave - t, 0.0) + overshoot
+    return dr.minimum(dr.select(empty, skip, step), t_end - t)
+
+
+def exponential_segment(dtau: mi.Float, v0, v1):
+    """One segment of a march in closed form: its transmittance exp(-dtau), and
+    int_0^dtau exp(-x) v(x) dx for v linear in optical depth from v0 to v1
+    (= v0 (1 - e^-dtau) + (v1 - v0) (1 - e^-dtau (1 + dtau)) / dtau, exact for constant
+    sigma_t and linear v)."""
+    T = dr.exp(-dtau)
+    w1 = dr.select(dtau > 1e-3, (1.0 - T * (1.0 + dtau)) / dr.maximum(dtau, 1e-3), 0.5 * dtau)
+    return T, v0 * (1.0 - T) + (v1 - v0) * w1
 
 
 def uniform_sphere(rng: mi.PCG32) -> mi.Vector3f:

@@ -44,7 +44,16 @@ import mitsuba as mi
 import numpy as np
 
 from ..options import ESTIMATORS
-from ..tracing import DensityField, ratio_tracking, sample_collision, uniform_sphere
+from ..tracing import (
+    BLOCK,
+    DensityField,
+    exponential_segment,
+    linear_texture,
+    ratio_tracking,
+    sample_collision,
+    step_length,
+    uniform_sphere,
+)
 
 #: The field march stops where the transmittance from the camera falls below this.
 FIELD_TR_MIN = 1e-3
@@ -151,16 +160,12 @@ class FieldTextures:
 
     @classmethod
     def from_field(cls, field) -> FieldTextures:
-        def texture(a: np.ndarray):
-            a = np.ascontiguousarray(a if a.ndim == 4 else a[..., None], np.float32)
-            return mi.Texture3f(mi.TensorXf(a), filter_mode=dr.FilterMode.Linear, wrap_mode=dr.WrapMode.Clamp)
-
         step = float(field.meta["step"])
         diag = float(np.linalg.norm(np.subtract(*field.meta["world_bbox"][::-1])))
-        blocks = sum(-(-n // 8) for n in field.sigma_t.shape)
+        blocks = sum(-(-n // BLOCK) for n in field.sigma_t.shape)
         return cls(
-            tau=texture(field.tau_light),
-            ms=texture(field.radiance_ms),
+            tau=linear_texture(field.tau_light),
+            ms=linear_texture(field.radiance_ms),
             step=step,
             max_steps=int(2 * (diag / step + 3 * blocks) + 16),
         )
@@ -263,11 +268,10 @@ class GraphIntegrator(mi.SamplingIntegrator):
     def _field(self, o, d, rng, active):
         # Eq. 4.24 through the baked field, segment by segment in closed form (an exponential
         # integrator): sigma_t is taken as the mean of its end values over a segment and L_in as
-        # linear in optical depth x between its end values L0, L1, so that with dtau = sigma dt
-        #   int_seg T_r sigma_s L_in dt
-        #     = T_r(t) albedo [L0 (1 - e^-dtau) + (L1 - L0) (1 - e^-dtau (1 + dtau)) / dtau]
-        # (exact for a constant sigma_t and linear L_in). Each step evaluates one new end point;
-        # one jitter per ray shifts the step grid against banding.
+        # linear in optical depth between its end values L0, L1 (tracing.exponential_segment):
+        #   int_seg T_r sigma_s L_in dt = T_r(t) albedo int_0^dtau e^-x L_in(x) dx.
+        # Each step evaluates one new end point; one jitter per ray shifts the step grid against
+        # banding.
         f = self.field
         t, t_end = self.medium.box_interval(o, d)
         albedo = mi.Color3f(*self.albedo)
@@ -283,15 +287,13 @@ class GraphIntegrator(mi.SamplingIntegrator):
             # Empty-space skipping: a block without density is crossed in one step
             sigma_maj, t_leave = self.medium.block(o, d, t, active)
             empty = sigma_maj <= 0.0
-            dt = dr.select(started, f.step, first)  # the jitter applies where the medium begins
-            dt = dr.select(empty, dr.maximum(t_leave - t, 0.0) + 1e-3 * f.step, dt)
-            dt = dr.minimum(dt, t_end - t)
+            # the jitter applies where the medium begins
+            dt = step_length(empty, t, t_leave, t_end, dr.select(started, f.step, first), 1e-3 * f.step)
             sigma1, L1 = self._field_in(o + (t + dt) * d, active)
             # One segment (nothing to add across an empty block)
             dtau = dr.select(empty, 0.0, 0.5 * (sigma0 + sigma1) * dt)
-            seg_Tr = dr.exp(-dtau)
-            w1 = dr.select(dtau > 1e-3, (1.0 - seg_Tr * (1.0 + dtau)) / dr.maximum(dtau, 1e-3), 0.5 * dtau)
-            L += Tr * albedo * (L0 * (1.0 - seg_Tr) + (L1 - L0) * w1)
+            seg_Tr, seg_L = exponential_segment(dtau, L0, L1)
+            L += Tr * albedo * seg_L
             Tr *= seg_Tr
             t += dt
             sigma0, L0 = sigma1, L1
