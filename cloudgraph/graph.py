@@ -14,10 +14,10 @@ b. Then
 so the graph depends on sigma_t only, never on albedo or light colour.
 
 Nodes (§4.3.1, pseudo-Voronoi cells): space is cut into cubes of side 2r/sqrt(3), so every
-point of a cube is within r of its centre; the collisions in an occupied cube seed a node at
-their mean, and every collision then joins its closest node. This is the order-independent,
-vectorised form of "closest node within r, else a new node": it gives the same kind of cells
-and the same result for the same seed on any machine.
+point of a cube is within r of its centre; every collision joins the node of its cube, and a
+node sits at the mean of its collisions. This is the order-independent, vectorised form of
+"closest node within r, else a new node": it gives the same kind of cells and the same result
+for the same seed on any machine, and new collisions (reinforcement) find their node by key.
 """
 
 from __future__ import annotations
@@ -251,14 +251,13 @@ def density_points(volume: Volume, n: int, seed: int) -> np.ndarray:
 # ------------------------------------------------------------------ node grouping
 
 
-def seed_nodes(points: np.ndarray, radius: float) -> np.ndarray:
-    """Node positions: the mean collision of each occupied cube of side 2r/sqrt(3) (§4.3.1)."""
-    side = 2.0 * radius / np.sqrt(3.0)
-    cells = np.floor(points / side).astype(np.int64)
-    _, inverse, n = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.ravel()
-    sums = np.stack([np.bincount(inverse, points[:, i], len(n)) for i in range(3)], axis=1)
-    return (sums / n[:, None]).astype(np.float32)
+def node_cells(points: np.ndarray, radius: float, origin: np.ndarray) -> np.ndarray:
+    """(M,) int64 cell keys of (M, 3) world points: cubes of side 2r/sqrt(3) from ``origin`` (a
+    corner below every point), so that every point of a cube is within r of its centre."""
+    cell = np.floor((points - origin) / (2.0 * radius / np.sqrt(3.0))).astype(np.int64)
+    if cell.size and (cell.min() < 0 or cell.max() >= 1 << 21):
+        raise ValueError("the medium spans more than 2^21 node cells along an axis; raise the node radius")
+    return (cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2]
 
 
 #: Light paths enter from the six axis directions: the graph is then the same whatever light
@@ -303,11 +302,11 @@ def build_graph(volume: Volume, density_scale: float, params: BuildParams, progr
     t_trace = time.perf_counter() - t_start
     progress("group", 0.3)
 
-    # Nodes and edges (§4.3.1)
+    # Nodes and edges (§4.3.1): every collision joins the node of its cell
     t0 = time.perf_counter()
-    nodes = seed_nodes(points, params.radius) if len(points) else np.zeros((0, 3), np.float32)
-    tree = cKDTree(nodes)
-    _, node_of = tree.query(points, workers=-1)
+    origin = volume.world_bbox()[0] - params.radius
+    node_keys, node_of = np.unique(node_cells(points, params.radius, origin), return_inverse=True)
+    node_of = node_of.ravel()
     src = node_of[has_out]
     dst = np.where(succ[has_out] >= 0, node_of[np.maximum(succ[has_out], 0)], -1)
     t_group = time.perf_counter() - t0
@@ -317,7 +316,7 @@ def build_graph(volume: Volume, density_scale: float, params: BuildParams, progr
     rng = np.random.default_rng(params.seed)
     for rnd in range(params.reinforce_rounds):
         progress("reinforce", 0.5 + 0.1 * rnd)
-        n = len(nodes)
+        n = len(node_keys)
         out = np.bincount(src, minlength=n)
         edges = np.unique(np.stack([src, dst])[:, dst >= 0], axis=1)
         n_edges = np.bincount(edges[0], minlength=n)
@@ -325,41 +324,41 @@ def build_graph(volume: Volume, density_scale: float, params: BuildParams, progr
         deficit[(n_edges < params.min_out_edges) & (deficit == 0)] = params.min_out_samples
         if not deficit.any():
             break
-        # Start each new flight at a random collision of the node (or its centre if it has none)
+        # Start each new flight at a random collision of the node
         members = np.argsort(node_of, kind="stable")
         first = np.searchsorted(node_of[members], np.arange(n))
         count = np.bincount(node_of, minlength=n)
         who = np.repeat(np.arange(n), deficit)
-        pick = first[who] + np.floor(rng.random(len(who)) * np.maximum(count[who], 1)).astype(np.int64)
-        starts = np.where(
-            (count[who] > 0)[:, None], points[members[np.minimum(pick, len(points) - 1)]], nodes[who]
-        )
-        hits, collided = trace_flights(field, starts, params.seed + 1 + rnd)
+        pick = first[who] + np.floor(rng.random(len(who)) * count[who]).astype(np.int64)
+        hits, collided = trace_flights(field, points[members[pick]], params.seed + 1 + rnd)
         new_points = hits[collided].astype(np.float64)
-        # Collisions far from every node seed new nodes (filled in the next round)
-        dist, near = tree.query(new_points, workers=-1)
-        far = dist > params.radius
-        if far.any():
-            nodes = np.concatenate([nodes, seed_nodes(new_points[far], params.radius)])
-            tree = cKDTree(nodes)
-            _, near = tree.query(new_points, workers=-1)
+        # Collisions in cells without a node make new nodes (filled in the next round); node ids
+        # are kept in order of their keys, so the graph is the same whatever found a node first
+        new_key = node_cells(new_points, params.radius, origin)
+        merged = np.union1d(node_keys, new_key)
+        remap = np.searchsorted(merged, node_keys)
+        node_keys = merged
+        near = np.searchsorted(node_keys, new_key)
         # New flights are samples of their start node; their collisions are collisions too
         points = np.concatenate([points, new_points])
-        node_of = np.concatenate([node_of, near])
+        node_of = np.concatenate([remap[node_of], near])
         dst_new = np.full(len(who), -1, np.int64)
         dst_new[collided] = near
-        src = np.concatenate([src, who])
-        dst = np.concatenate([dst, dst_new])
+        src = np.concatenate([remap[src], remap[who]])
+        dst = np.concatenate([np.where(dst >= 0, remap[np.maximum(dst, 0)], -1), dst_new])
     t_reinforce = time.perf_counter() - t0
 
-    # Counts, then search ranges from the k nearest nodes (Eq. 4.21, thesis §4.3.2)
-    n = len(nodes)
+    # Node positions (the mean of their collisions), counts, then search ranges from the k
+    # nearest nodes (Eq. 4.21, thesis §4.3.2)
+    n = len(node_keys)
+    members = np.bincount(node_of, minlength=n)
+    nodes = np.stack([np.bincount(node_of, points[:, i], n) for i in range(3)], axis=1) / members[:, None]
     out_samples = np.bincount(src, minlength=n).astype(np.int64)
     hit = dst >= 0
     counts = sp.csr_matrix((np.ones(hit.sum(), np.int64), (src[hit], dst[hit])), shape=(n, n))
     counts.sum_duplicates()
     kq = min(params.search_k + 1, n)
-    dk, _ = tree.query(nodes, k=kq, workers=-1)
+    dk, _ = cKDTree(nodes).query(nodes, k=kq, workers=-1)
     kth = dk[:, -1] if kq > 1 else np.full(n, params.radius)
     search = np.maximum(kth, params.radius).astype(np.float32)  # Eq. 4.21: R_a = max(d_k(a), r)
 

@@ -27,7 +27,7 @@ from .volume import Volume
 log = logging.getLogger(__name__)
 
 #: Lighting parameters that enter the radiance key.
-LIGHTING = {"disk_samples": 16, "tol": 1e-5, "transport": "krylov"}
+LIGHTING = {"samples": 16, "tol": 1e-5, "transport": "krylov"}
 
 
 @dataclass
@@ -121,10 +121,9 @@ def precompute(
         L_d = direct_radiance(
             field,
             graph.positions,
-            params.radius,
             light_dir,
             scene.light.irradiance_rgb(),
-            LIGHTING["disk_samples"],
+            LIGHTING["samples"],
             seed=params.seed,
         )
         t_light = time.perf_counter() - t0

@@ -13,10 +13,11 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from cloudgraph.cache import CacheStore
+from cloudgraph.metrics import bias_metrics
 from cloudgraph.precompute import precompute
 from cloudgraph.volume import sphere_volume
 
-from ..helpers import medium_scene, reference, render_march
+from ..helpers import LIGHT, medium_scene, reference, render_march
 
 # ------------------------------------------------------------------ 1. counts
 
@@ -70,38 +71,60 @@ def test_nodes_deep_in_a_thick_sphere_escape_less_than_rim_nodes(sphere):
 # ------------------------------------------------------------------ 2. accuracy against volpath
 
 
-def test_homogeneous_sphere_matches_volpath_up_to_the_known_positive_bias(sphere):
+def test_homogeneous_sphere_matches_volpath(sphere):
     volume, scene = sphere["volume"], sphere["scene"]
     image = render_march(sphere["cache"], volume, scene)
     ref = reference(scene, volume)
     mae, ratio = np.abs(image - ref).mean(), image.mean() / ref.mean()
     assert (ref > 0).mean() > 0.5  # the sphere fills the frame
-    # Measured (40x40, graph 16 spp, reference 512 spp): MAE 0.0053 = 0.153 of the reference mean
-    # 0.0348, mean ratio 1.148; build seeds 1 and 2 give 0.138 / 1.129 and 0.117 / 1.107. The
-    # reference's own noise is ~0.03 of its mean. Draft nodes are 0.6 free paths wide, where the
-    # bench measured a bias of 1.13 side-lit: the image is too bright, never too dark.
-    assert mae < 0.25 * ref.mean()
-    assert 1.0 < ratio < 1.3
+    # Measured (40x40, graph 16 spp, reference 512 spp): MAE 0.059 of the reference mean, mean
+    # ratio 0.974; build seed 1: 0.063 / 0.971. The reference's own noise is ~0.03 of its mean.
+    # With direct light averaged over a disk of the node's radius (the thesis's Eq. 4.22, which
+    # lighting.py no longer does) it was 0.153 / 1.148.
+    assert mae < 0.10 * ref.mean()
+    assert 0.94 < ratio < 1.04
 
 
-def test_heterogeneous_cloud_matches_volpath_up_to_the_known_positive_bias(cloud):
+def test_heterogeneous_cloud_matches_volpath(cloud):
     volume, scene = cloud["volume"], cloud["scene"]
     image = render_march(cloud["cache"], volume, scene)
     ref = reference(scene, volume)
     mae, ratio = np.abs(image - ref).mean(), image.mean() / ref.mean()
     assert (ref > 0).mean() > 0.25
-    # Measured: MAE 0.0015 = 0.091 of the reference mean 0.0163, mean ratio 1.074; build seeds 1
-    # and 2 give 0.084 / 1.066 and 0.088 / 1.069. Nodes are again 0.6 typical free paths wide;
-    # the cloud's thin, wispy parts carry less of the bias than the sphere's deep interior.
-    assert mae < 0.15 * ref.mean()
-    assert 1.0 < ratio < 1.2
+    # Measured: MAE 0.054 of the reference mean, mean ratio 1.005; build seed 1: 0.058 / 0.982.
+    # With the disk mean of the direct light: 0.091 / 1.074.
+    assert mae < 0.09 * ref.mean()
+    assert 0.95 < ratio < 1.05
+
+
+@pytest.mark.parametrize("view", ["side", "back"])
+def test_energy_balance_of_a_sphere_at_albedo_1_side_and_back_lit(variant, tmp_path, view):
+    # The converged estimator (gather) against volpath where the graph's bias was largest: no
+    # absorption, so every scattering order goes through the graph, and back-lit, where all
+    # that reaches the camera has crossed the sphere (optical radius 6, draft nodes 0.6 free
+    # paths wide).
+    volume = sphere_volume(24)
+    light = np.asarray(LIGHT) / np.linalg.norm(LIGHT)
+    side = np.cross(light, [0.0, 0.0, 1.0])
+    eye = {"side": side / np.linalg.norm(side), "back": light}[view]
+    scene = medium_scene(volume, density_scale=6.0 / 11.0, albedo=1.0, eye_dir=tuple(eye), size=32)
+    from cloudgraph.integrators.graph import GraphRenderer
+
+    cache = precompute(scene, volume, "draft", CacheStore(tmp_path))
+    image = GraphRenderer(cache, volume, scene).render(scene.camera, 256, 3, "gather")
+    m = bias_metrics(image, reference(scene, volume, spp=1024))
+    # Measured: mean ratio 1.011 side-lit, 1.019 back-lit; 4x4-binned relMAE 2.8 % and 5.2 % (the
+    # back-lit reference's own noise is most of it). With the disk mean of the direct light
+    # (the cause of the bias, README "Accuracy"): 1.064 / 6.6 % and 1.165 / 16.6 %.
+    assert abs(m["mean_ratio"] - 1.0) < 0.04
+    assert m["binned_relMAE"] < 0.08
 
 
 # ------------------------------------------------------------------ 3. error against node radius
 
 
 def test_error_grows_with_node_radius_in_mean_free_paths(variant, tmp_path):
-    # Thesis §5.4: the bias grows with the node radius measured in free paths. Sphere of radius
+    # Thesis §5.4: the error grows with the node radius measured in free paths. Sphere of radius
     # 7 voxels at optical radius 6: one free path is 7/6 voxels.
     volume = sphere_volume(16)
     scene = medium_scene(volume, density_scale=6.0 / 7.0)
@@ -114,10 +137,12 @@ def test_error_grows_with_node_radius_in_mean_free_paths(variant, tmp_path):
         image = render_march(cache, volume, scene)
         maes.append(np.abs(image - ref).mean())
         ratios.append(image.mean() / ref.mean())
-    # Measured: MAE 0.0023, 0.0056, 0.0152 (reference mean 0.0327, its noise ~0.001) and mean
-    # ratios 1.046, 1.162, 1.463: each doubling of the radius more than doubles the error.
-    assert maes[1] > 1.5 * maes[0] and maes[2] > 1.5 * maes[1]
-    assert 1.0 < ratios[0] < ratios[1] < ratios[2]
+    # Measured: MAE 0.0017, 0.0024, 0.0034 (reference mean 0.0327, its noise ~0.001) and mean
+    # ratios 0.999, 0.980, 0.933: larger nodes lose energy (with the disk mean of the direct
+    # light they gained it: 1.046, 1.162, 1.463).
+    assert maes[0] < maes[1] < maes[2]
+    assert abs(ratios[0] - 1.0) < 0.03
+    assert ratios[0] > ratios[1] > ratios[2]
 
 
 # ------------------------------------------------------------------ 4. cache levels
