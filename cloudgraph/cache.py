@@ -93,16 +93,19 @@ class CacheStore:
 
     # ------------------------------------------------------------------ graphs
     def save_graph(self, key: str, graph: Graph) -> Path:
+        """Compact and compressed: counts and sample totals in the smallest unsigned type that
+        holds them, column indices as uint32 (the edges are most of the file)."""
         c = graph.counts.tocsr()
         return _atomic_save(
             self.graph_path(key),
             kind="graph",
-            positions=graph.positions,
-            search_radius=graph.search_radius,
-            out_samples=graph.out_samples,
-            indptr=c.indptr,
-            indices=c.indices,
-            data=c.data,
+            compress=True,
+            positions=graph.positions.astype(np.float32),
+            search_radius=graph.search_radius.astype(np.float32),
+            out_samples=_compact(graph.out_samples),
+            indptr=c.indptr.astype(np.int64),
+            indices=c.indices.astype(np.uint32),
+            data=_compact(c.data),
             stats=json.dumps(graph.stats),
         )
 
@@ -115,10 +118,16 @@ class CacheStore:
         if z is None:
             return None
         n = len(z["positions"])
-        counts = sp.csr_matrix((z["data"], z["indices"], z["indptr"]), shape=(n, n))
-        return Graph(
-            z["positions"], z["search_radius"], z["out_samples"], counts, json.loads(str(z["stats"]))
+        counts = sp.csr_matrix(
+            (z["data"].astype(np.int64), z["indices"].astype(np.int32), z["indptr"]), shape=(n, n)
         )
+        stats = json.loads(str(z["stats"]))
+        return Graph(z["positions"], z["search_radius"], z["out_samples"].astype(np.int64), counts, stats)
+
+    def load_nodes(self, key: str) -> tuple[np.ndarray, np.ndarray] | None:
+        """(positions, search ranges) of a graph: all that a render reads of it (not the counts)."""
+        z = _load(self.graph_path(key), "graph", ("positions", "search_radius"))
+        return None if z is None else (z["positions"], z["search_radius"])
 
     # ---------------------------------------------------------------- radiance
     def save_radiance(self, key: str, radiance: np.ndarray, radiance_gather: np.ndarray, stats: dict) -> Path:
@@ -169,13 +178,21 @@ def atomic_writer(path: Path):
         raise
 
 
-def _atomic_save(path: Path, kind: str, **arrays) -> Path:
+def _atomic_save(path: Path, kind: str, compress: bool = False, **arrays) -> Path:
     with atomic_writer(path) as f:
-        np.savez(f, format_version=ENGINE_FORMAT_VERSION, kind=kind, **arrays)
+        (np.savez_compressed if compress else np.savez)(
+            f, format_version=ENGINE_FORMAT_VERSION, kind=kind, **arrays
+        )
     return path
 
 
-def _load(path: Path, kind: str) -> dict | None:
+def _compact(a: np.ndarray) -> np.ndarray:
+    """Non-negative integers in the smallest unsigned type that holds them."""
+    return a.astype(np.min_scalar_type(int(a.max())) if a.size else np.uint8)
+
+
+def _load(path: Path, kind: str, names: tuple[str, ...] | None = None) -> dict | None:
+    """The arrays of a cache file (only ``names`` where given; an .npz is read array by array)."""
     if not path.is_file():
         return None
     try:
@@ -184,7 +201,8 @@ def _load(path: Path, kind: str) -> dict | None:
         return None  # evicted between the check and now: treat as missing
     try:
         with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
+            wanted = {"format_version", "kind", *(names or z.files)}
+            data = {k: z[k] for k in z.files if k in wanted}
     except (OSError, ValueError, EOFError) as err:
         raise CacheError(f"cache file {path} is corrupt ({err}); delete it to rebuild") from None
     if int(data.get("format_version", -1)) != ENGINE_FORMAT_VERSION or str(data.get("kind")) != kind:

@@ -43,6 +43,8 @@ class RadianceCache:
         stats: graph, radiance and field stats, stage times, bytes.
         graph: the graph, read from the store only when first used: a ``field`` render of a
             cached scene never reads it (it is by far the largest file).
+        nodes: (positions, search ranges) of the graph, all that a Monte Carlo render needs of it:
+            read without the counts (most of the graph file) when the graph is not loaded.
     """
 
     radiance: np.ndarray
@@ -52,6 +54,7 @@ class RadianceCache:
     stats: dict
     store: CacheStore
     _graph: Graph | None = None
+    _nodes: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def graph(self) -> Graph:
@@ -60,6 +63,16 @@ class RadianceCache:
             if self._graph is None:
                 raise CacheError("the graph of this cache was evicted; run the precompute again")
         return self._graph
+
+    @property
+    def nodes(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._graph is not None:
+            return self._graph.positions, self._graph.search_radius
+        if self._nodes is None:
+            self._nodes = self.store.load_nodes(self.keys["graph_key"])
+            if self._nodes is None:
+                raise CacheError("the graph of this cache was evicted; run the precompute again")
+        return self._nodes
 
 
 _VOLUME_IDS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()

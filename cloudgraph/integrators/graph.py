@@ -337,9 +337,9 @@ class GraphRenderer:
             if estimator == "field":
                 field = FieldTextures.from_field(self.cache.field)
             else:
-                g = self.cache.graph
+                positions, search_radius = self.cache.nodes  # the counts stay on disk
                 radiance = self.cache.radiance_gather if estimator == "gather" else self.cache.radiance
-                grid = NodeGrid.build(g.positions, g.search_radius, radiance)
+                grid = NodeGrid.build(positions, search_radius, radiance)
             integrator = GraphIntegrator(mi.Properties())
             integrator.set_cache(
                 self.medium, *self.light, estimator, grid, field, self.cache.stats["radius"], self.step

@@ -207,6 +207,30 @@ def test_a_fixed_seed_gives_identical_caches_in_separate_stores(variant, tmp_pat
     stored = CacheStore(tmp_path / "b").load_graph(b.keys["graph_key"])
     assert stored.positions.tobytes() == ga.positions.tobytes()
     assert (stored.counts != ga.counts).nnz == 0
+    np.testing.assert_array_equal(stored.out_samples, ga.out_samples)
+
+
+def test_the_graph_file_is_compact_and_renders_read_only_its_nodes(sphere, monkeypatch):
+    from cloudgraph.integrators.graph import GraphRenderer
+
+    cache, volume, scene = sphere["cache"], sphere["volume"], sphere["scene"]
+    store, g = cache.store, cache.graph
+    with np.load(store.graph_path(cache.keys["graph_key"])) as z:
+        assert z["data"].dtype == np.min_scalar_type(int(g.counts.data.max())) != np.int64
+        assert z["out_samples"].dtype == np.min_scalar_type(int(g.out_samples.max()))
+        assert z["indices"].dtype == np.uint32
+    # A Monte Carlo render of a cached scene reads the node positions and ranges, not the counts
+    again = precompute(scene, volume, "draft", store)
+    assert again.stats["radiance_reused"] and again._graph is None
+
+    def no_graph(key):
+        raise AssertionError("the whole graph was read")
+
+    monkeypatch.setattr(store, "load_graph", no_graph)
+    image = GraphRenderer(again, volume, scene).render(scene.camera, 4, 0, "gather")
+    expected = GraphRenderer(cache, volume, scene).render(scene.camera, 4, 0, "gather")
+    assert image.mean() > 0
+    np.testing.assert_array_equal(image, expected)
 
 
 # ------------------------------------------------------------------ 6. kernel reuse
