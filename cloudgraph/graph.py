@@ -173,12 +173,15 @@ def trace_light_paths(
     n_paths: int,
     max_collisions: int,
     seed: int,
+    first: int = 0,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Paths from directional lights, free-flight sampled through the medium (Dr.Jit).
+    """Paths first .. first + n_paths - 1 from directional lights, free-flight sampled through the
+    medium (Dr.Jit). Path i is the same whichever range it is traced in.
 
     Args:
         field: the medium's density field.
         directions: (K, 3) unit directions the light travels; path i uses directions[i % K].
+        first: the index of the first path.
         bounds: world bounding box of the medium (lo, hi).
 
     Returns:
@@ -189,9 +192,9 @@ def trace_light_paths(
     lo, hi = bounds
     centre, radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2 * 1.001
     dirs = mi.Vector3f(*(np.asarray(directions, np.float32)[:, i] for i in range(3)))
-    d = dr.gather(mi.Vector3f, dirs, dr.arange(mi.UInt32, n_paths) % len(directions))
+    d = dr.gather(mi.Vector3f, dirs, dr.arange(mi.UInt32, first, first + n_paths) % len(directions))
     frame = mi.Frame3f(d)
-    rng = mi.PCG32(n_paths, initstate=seed, initseq=dr.arange(mi.UInt64, n_paths))
+    rng = mi.PCG32(n_paths, initstate=seed + first, initseq=first)  # lane i: first + i added to both
     # Origins uniform on a disk perpendicular to the light that covers the medium
     disk = mi.warp.square_to_uniform_disk_concentric(mi.Point2f(rng.next_float32(), rng.next_float32()))
     o = mi.Point3f(
@@ -225,10 +228,13 @@ def _walk(
     return k
 
 
-def trace_flights(field: DensityField, origins: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """One isotropic free flight from each origin: (collision points (M, 3), collided (M,))."""
+def trace_flights(
+    field: DensityField, origins: np.ndarray, seed: int, first: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """One isotropic free flight from each origin: (collision points (M, 3), collided (M,)).
+    Flight i (counted from ``first``) is the same whichever range it is traced in."""
     m = len(origins)
-    rng = mi.PCG32(m, initstate=seed, initseq=dr.arange(mi.UInt64, m))
+    rng = mi.PCG32(m, initstate=seed + first, initseq=first)  # lane i: first + i added to both
     o = mi.Point3f(*(origins[:, i].astype(np.float32) for i in range(3)))
     d = uniform_sphere(rng)
     t, collided = sample_collision(field, o, d, rng, mi.Bool(True))
@@ -266,6 +272,101 @@ def node_cells(points: np.ndarray, radius: float, origin: np.ndarray) -> np.ndar
 GRAPH_LIGHTS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], float)
 
 
+#: Light paths per tracing chunk, and flights per reinforcement chunk: collisions are reduced to
+#: per-node sums chunk by chunk, so memory does not grow with the number of light paths. Fixed
+#: sizes: the graph does not depend on how the work is cut.
+CHUNK_PATHS = 1 << 14
+CHUNK_FLIGHTS = 1 << 18
+#: Collisions kept per node (a uniform sample of all of them, by random priority) as the starting
+#: points of its reinforcement flights.
+MEMBERS_KEPT = 8
+
+
+def uniform_hash(seed: int, stream: int, index: np.ndarray) -> np.ndarray:
+    """Numbers uniform in [0, 1) from (seed, stream, index) by splitmix64: each collision's own,
+    whichever chunk it was traced in."""
+    mix = (int(seed) * 0x9E3779B97F4A7C15 + int(stream) * 0xD1B54A32D192ED03 + 1) % 2**64
+    x = np.asarray(index).astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(mix)
+    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    x = x ^ (x >> np.uint64(31))
+    return (x >> np.uint64(11)).astype(np.float64) / 2.0**53
+
+
+#: Collision positions are summed in fixed point, 2^-20 node radii, so that sums in any order are
+#: equal (exact in float64 up to 2^53: 2^21 cells a side times 2^12 collisions a node).
+FIXED_POINT = 2.0**20
+
+
+class NodeTable:
+    """The nodes as they are being found, in the order found: per node its cell key, the number
+    and sum of its collisions, a uniform sample of MEMBERS_KEPT of them (the lowest random
+    priorities), its outgoing samples, and the edge counts. Collisions and samples are merged in
+    (:meth:`merge`) and then dropped, so memory grows with the nodes, not with the samples.
+    Everything kept is a sum or a minimum, so the table is the same whatever the order and the
+    cut of the merges."""
+
+    def __init__(self, origin: np.ndarray, radius: float):
+        self.origin, self.unit = np.asarray(origin, float), float(radius) / FIXED_POINT
+        self.keys = np.zeros(0, np.int64)
+        self.order = np.zeros(0, np.int64)  # node indices sorted by key
+        self.count = np.zeros(0, np.int64)
+        self.sum = np.zeros((0, 3), np.int64)
+        self.kept = np.zeros((0, MEMBERS_KEPT, 3), np.float32)
+        self.priority = np.zeros((0, MEMBERS_KEPT))
+        self.out = np.zeros(0, np.int64)
+        self.counts = sp.csr_matrix((0, 0), dtype=np.int64)
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def index(self, keys: np.ndarray) -> np.ndarray:
+        """Node indices of cell keys; cells without a node become new nodes."""
+        pos = np.searchsorted(self.keys[self.order], keys)
+        found = np.zeros(len(keys), bool)
+        inside = pos < len(self.order)
+        found[inside] = self.keys[self.order[pos[inside]]] == keys[inside]
+        new = np.unique(keys[~found])
+        if len(new):
+            n, m = len(self), len(new)
+            self.keys = np.concatenate([self.keys, new])
+            self.order = np.argsort(self.keys, kind="stable")
+            self.count = np.concatenate([self.count, np.zeros(m, np.int64)])
+            self.sum = np.concatenate([self.sum, np.zeros((m, 3), np.int64)])
+            self.kept = np.concatenate([self.kept, np.zeros((m, MEMBERS_KEPT, 3), np.float32)])
+            self.priority = np.concatenate([self.priority, np.full((m, MEMBERS_KEPT), np.inf)])
+            self.out = np.concatenate([self.out, np.zeros(m, np.int64)])
+            self.counts.resize((n + m, n + m))
+        return self.order[np.searchsorted(self.keys[self.order], keys)]
+
+    def merge(self, keys, points, priority, src, dst) -> None:
+        """Adds collisions ((M,) cell keys, (M, 3) points, (M,) priorities in [0, 1)) and
+        outgoing samples ((S,) cell keys of their start, (S,) of their collision or -1: escaped)."""
+        node = self.index(keys)
+        n = len(self)
+        self.count += np.bincount(node, minlength=n)
+        fixed = np.round((points - self.origin) / self.unit)
+        for i in range(3):
+            self.sum[:, i] += np.bincount(node, fixed[:, i], n).astype(np.int64)
+        # The kept sample of each node touched: its MEMBERS_KEPT lowest priorities so far
+        touched = np.unique(node)
+        cand_node = np.concatenate([np.repeat(touched, MEMBERS_KEPT), node])
+        cand_pri = np.concatenate([self.priority[touched].ravel(), priority])
+        cand_pts = np.concatenate([self.kept[touched].reshape(-1, 3), points.astype(np.float32)])
+        order = np.lexsort((cand_pri, cand_node))
+        starts = np.flatnonzero(np.diff(cand_node[order], prepend=-1))
+        rank = np.arange(len(order)) - np.repeat(starts, np.diff(np.append(starts, len(order))))
+        keep = order[rank < MEMBERS_KEPT]
+        self.priority[cand_node[keep], rank[rank < MEMBERS_KEPT]] = cand_pri[keep]
+        self.kept[cand_node[keep], rank[rank < MEMBERS_KEPT]] = cand_pts[keep]
+        # Samples and edge counts
+        s = self.index(src)
+        self.out += np.bincount(s, minlength=n)
+        hit = dst >= 0
+        ones = np.ones(int(hit.sum()), np.int64)
+        self.counts = self.counts + sp.csr_matrix((ones, (s[hit], self.index(dst[hit]))), shape=(n, n))
+
+
 def build_graph(volume: Volume, density_scale: float, params: BuildParams, progress=None) -> Graph:
     """Builds the graph of a volume and density scale (a variant must be set).
 
@@ -274,99 +375,94 @@ def build_graph(volume: Volume, density_scale: float, params: BuildParams, progr
     progress = progress or (lambda stage, fraction: None)
     t_start = time.perf_counter()
     field = DensityField.from_volume(volume, density_scale)
+    origin = volume.world_bbox()[0] - params.radius
+    table = NodeTable(origin, params.radius)
 
-    # Light paths (§4.3)
-    progress("trace", 0.0)
-    pos, n_col = trace_light_paths(
-        field, GRAPH_LIGHTS, volume.world_bbox(), params.n_paths, params.max_collisions, params.seed
-    )
+    # Light paths (§4.3), chunk by chunk: every collision joins the node of its cell (§4.3.1)
+    # and has an outgoing sample unless it was the last one kept on a cut path: its successor
+    # is the next collision, or an escape when the path ended early.
     k = np.arange(params.max_collisions)[None, :]
-    valid = k < n_col[:, None]
-    points = pos[valid].astype(np.float64)
-    # A collision has an outgoing sample unless it was the last one kept on a cut path:
-    # its successor is the next collision, or an escape when the path ended early.
-    has_next = k + 1 < n_col[:, None]
-    escaped = (k + 1 == n_col[:, None]) & (n_col[:, None] < params.max_collisions)
-    has_out = (has_next | escaped)[valid]
-    succ = np.full(valid.shape, -1, np.int64)  # index into points of each collision's successor
-    flat = np.cumsum(valid.ravel()).reshape(valid.shape) - 1
-    succ[:, :-1] = np.where(has_next[:, :-1], flat[:, 1:], -1)
-    succ = succ[valid]
+    for first in range(0, params.n_paths, CHUNK_PATHS):
+        progress("trace", 0.3 * first / params.n_paths)
+        n = min(CHUNK_PATHS, params.n_paths - first)
+        pos, n_col = trace_light_paths(
+            field, GRAPH_LIGHTS, volume.world_bbox(), n, params.max_collisions, params.seed, first
+        )
+        valid = k < n_col[:, None]
+        keys = np.full(valid.shape, -1, np.int64)
+        keys[valid] = node_cells(pos[valid].astype(np.float64), params.radius, origin)
+        has_next = k + 1 < n_col[:, None]
+        escaped = (k + 1 == n_col[:, None]) & (n_col[:, None] < params.max_collisions)
+        succ = np.concatenate([keys[:, 1:], np.full((n, 1), -1, np.int64)], axis=1)
+        has_out = has_next | escaped
+        points = pos[valid].astype(np.float64)
+        table.merge(
+            keys[valid],
+            points,
+            uniform_hash(
+                params.seed, 0, ((first + np.arange(n))[:, None] * params.max_collisions + k)[valid]
+            ),
+            keys[has_out],
+            np.where(has_next, succ, -1)[has_out],
+        )
     # Coverage seeds (our addition): light paths are cut at max_collisions, so in thick media
     # they never reach the far side. Points drawn in proportion to density seed nodes there too;
     # reinforcement then gives every node its own outgoing samples.
     seeds = density_points(volume, params.coverage_seeds, params.seed)
-    points = np.concatenate([points, seeds])
-    has_out = np.concatenate([has_out, np.zeros(len(seeds), bool)])
-    succ = np.concatenate([succ, np.full(len(seeds), -1, np.int64)])
+    none = np.zeros(0, np.int64)
+    priority = uniform_hash(params.seed, 1, np.arange(len(seeds)))
+    table.merge(node_cells(seeds, params.radius, origin), seeds, priority, none, none)
     t_trace = time.perf_counter() - t_start
-    progress("group", 0.3)
-
-    # Nodes and edges (§4.3.1): every collision joins the node of its cell
-    t0 = time.perf_counter()
-    origin = volume.world_bbox()[0] - params.radius
-    node_keys, node_of = np.unique(node_cells(points, params.radius, origin), return_inverse=True)
-    node_of = node_of.ravel()
-    src = node_of[has_out]
-    dst = np.where(succ[has_out] >= 0, node_of[np.maximum(succ[has_out], 0)], -1)
-    t_group = time.perf_counter() - t0
 
     # Reinforcement of sparse nodes (§4.3, App. B)
     t0 = time.perf_counter()
     rng = np.random.default_rng(params.seed)
     for rnd in range(params.reinforce_rounds):
         progress("reinforce", 0.5 + 0.1 * rnd)
-        n = len(node_keys)
-        out = np.bincount(src, minlength=n)
-        edges = np.unique(np.stack([src, dst])[:, dst >= 0], axis=1)
-        n_edges = np.bincount(edges[0], minlength=n)
-        deficit = np.maximum(params.min_out_samples - out, 0)
+        n_edges = np.diff(table.counts.indptr)
+        deficit = np.maximum(params.min_out_samples - table.out, 0)
         deficit[(n_edges < params.min_out_edges) & (deficit == 0)] = params.min_out_samples
         if not deficit.any():
             break
-        # Start each new flight at a random collision of the node
-        members = np.argsort(node_of, kind="stable")
-        first = np.searchsorted(node_of[members], np.arange(n))
-        count = np.bincount(node_of, minlength=n)
-        who = np.repeat(np.arange(n), deficit)
-        pick = first[who] + np.floor(rng.random(len(who)) * count[who]).astype(np.int64)
-        hits, collided = trace_flights(field, points[members[pick]], params.seed + 1 + rnd)
-        new_points = hits[collided].astype(np.float64)
-        # Collisions in cells without a node make new nodes (filled in the next round); node ids
-        # are kept in order of their keys, so the graph is the same whatever found a node first
-        new_key = node_cells(new_points, params.radius, origin)
-        merged = np.union1d(node_keys, new_key)
-        remap = np.searchsorted(merged, node_keys)
-        node_keys = merged
-        near = np.searchsorted(node_keys, new_key)
-        # New flights are samples of their start node; their collisions are collisions too
-        points = np.concatenate([points, new_points])
-        node_of = np.concatenate([remap[node_of], near])
-        dst_new = np.full(len(who), -1, np.int64)
-        dst_new[collided] = near
-        src = np.concatenate([remap[src], remap[who]])
-        dst = np.concatenate([np.where(dst >= 0, remap[np.maximum(dst, 0)], -1), dst_new])
+        # Each new flight starts at a random kept collision of its node; it is a sample of that
+        # node, and where it collides is a collision too. Collisions in cells without a node
+        # make new nodes (filled in the next round).
+        who = np.repeat(table.order, deficit[table.order])  # in order of keys
+        pick = np.floor(rng.random(len(who)) * np.minimum(table.count[who], MEMBERS_KEPT)).astype(np.int64)
+        starts, who_keys = table.kept[who, pick].astype(np.float64), table.keys[who]
+        for a in range(0, len(who), CHUNK_FLIGHTS):
+            hits, collided = trace_flights(field, starts[a : a + CHUNK_FLIGHTS], params.seed + 1 + rnd, a)
+            hit_keys = node_cells(hits[collided].astype(np.float64), params.radius, origin)
+            dst = np.full(len(collided), -1, np.int64)
+            dst[collided] = hit_keys
+            table.merge(
+                hit_keys,
+                hits[collided].astype(np.float64),
+                uniform_hash(params.seed, 2 + rnd, a + np.flatnonzero(collided)),
+                who_keys[a : a + CHUNK_FLIGHTS],
+                dst,
+            )
     t_reinforce = time.perf_counter() - t0
 
     # Node positions (the mean of their collisions), counts, then search ranges from the k
     # nearest nodes (Eq. 4.21, thesis §4.3.2)
-    n = len(node_keys)
-    members = np.bincount(node_of, minlength=n)
-    nodes = np.stack([np.bincount(node_of, points[:, i], n) for i in range(3)], axis=1) / members[:, None]
-    out_samples = np.bincount(src, minlength=n).astype(np.int64)
-    hit = dst >= 0
-    counts = sp.csr_matrix((np.ones(hit.sum(), np.int64), (src[hit], dst[hit])), shape=(n, n))
-    counts.sum_duplicates()
+    t0 = time.perf_counter()
+    n, by_key = len(table), table.order  # nodes in order of their keys: the same however found
+    nodes = origin + table.sum[by_key] * table.unit / table.count[by_key, None]
+    out_samples = table.out[by_key]
+    counts = sp.csr_matrix(table.counts[by_key][:, by_key])
+    counts.sort_indices()
     kq = min(params.search_k + 1, n)
     dk, _ = cKDTree(nodes).query(nodes, k=kq, workers=-1)
     kth = dk[:, -1] if kq > 1 else np.full(n, params.radius)
     search = np.maximum(kth, params.radius).astype(np.float32)  # Eq. 4.21: R_a = max(d_k(a), r)
+    t_group = time.perf_counter() - t0
 
     progress("graph", 1.0)
     stats = {
         "nodes": int(n),
         "edges": int(counts.nnz),
-        "collisions": int(len(points)),
+        "collisions": int(table.count.sum()),
         "light_paths": int(params.n_paths),
         "samples": int(out_samples.sum()),
         "trace_s": round(t_trace, 3),
