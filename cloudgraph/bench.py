@@ -5,6 +5,10 @@ volpath reference (thesis Eq. 5.1), and the time volpath needs to reach the same
 doubled until it does, time interpolated in log-log), with Russian roulette on and off, the
 faster one counting. References are rendered once and kept under ``bench/reference-cache/``.
 
+``--converged`` measures accuracy only (:func:`run_converged`): per scene, camera and albedo
+the converged ``gather`` and ``field`` images against references of 4096 spp, split into bias
+(binned relMAE, mean ratio) and the reference's own noise.
+
 Beside it: the converged error of ``gather`` (1024 spp, so bias and not noise: binned relMAE and
 mean ratio), and the ``field`` rows: one-sample frames at 64^2 and 256^2, their error and
 equal-error speed-up, one volpath sample per pixel at 256^2 for scale, bake time and field
@@ -43,16 +47,23 @@ class BenchScene:
     density_scale: float
 
 
+#: The scenes run when none are named; ``holdout`` is run and reported apart (BENCHMARK.md).
+SCENES = ["sphere", "noise", "smoke1", "blender"]
+
+
 def bench_scenes(names: list[str] | None = None) -> list[BenchScene]:
-    """The four scenes; density_scale puts the densest voxel at optical depth 1 (BENCHMARK.md)."""
+    """The scenes (default: :data:`SCENES`); density_scale puts the densest voxel at optical
+    depth 1 (BENCHMARK.md)."""
     makers = {
         "sphere": lambda: sphere_volume(48),  # homogeneous; optical radius 23 x OD/voxel
         "noise": lambda: noise_volume(64, seed=7),
         "smoke1": lambda: load_volume(DATA / "smoke1.vdb"),
         "blender": lambda: load_volume(DATA / "blender_smoke_000002.vdb"),
+        # held out: a cloud made for measuring only, never used to choose a parameter
+        "holdout": lambda: noise_volume(48, seed=2026),
     }
     out = []
-    for name in names or list(makers):
+    for name in names or SCENES:
         if name not in makers:
             raise ValueError(f"unknown bench scene {name!r}; choose from {', '.join(makers)}")
         v = makers[name]()
@@ -225,7 +236,7 @@ def run_bench(
     from .precompute import precompute
 
     out_dir = Path(out_dir)
-    names = scenes or (["sphere", "noise"] if quick else ["sphere", "noise", "smoke1", "blender"])
+    names = scenes or (["sphere", "noise"] if quick else SCENES)
     # BENCHMARK.md asks for references of 4096 spp or more; with Russian roulette off that is
     # hours for the real clouds on two cores, so the full run uses 2048 (written in the results,
     # where each reference's own render time is logged).
@@ -320,6 +331,87 @@ def run_bench(
     print(table)
     return result
 
+
+#: References of the converged mode (BENCHMARK.md: 4096 spp or more).
+CONVERGED_REF_SPP = 4096
+#: The independent volpath run that measures each reference's own noise.
+NOISE_PROBE_SPP = 256
+
+
+def run_converged(scenes: list[str] | None = None, out_dir: str | Path = "bench/results", quality="default"):
+    """Converged accuracy per scene, camera and albedo (issue 10's table): ``gather`` at
+    CONVERGED_SPP and ``field`` at FIELD_AA_SPP against volpath at CONVERGED_REF_SPP (RR off).
+
+    The reference's own noise in the binned metric comes from an independent NOISE_PROBE_SPP run:
+    with independent noise, binned relMAE(probe vs ref) = c sqrt(1/s + 1/R), the reference's
+    own c / sqrt(R).
+    """
+    from .integrators.graph import GraphRenderer
+    from .precompute import precompute
+
+    out_dir = Path(out_dir)
+    store = CacheStore(out_dir.parent / "cache")
+    rows = []
+    for bs in bench_scenes(scenes):
+        for albedo in (1.0, 0.8):
+            for cam_name, camera in cameras(bs.volume, LIGHT, 64).items():
+                scene = _scene(bs, camera, albedo, 64, seed=0)
+                t0 = time.perf_counter()
+                cache = precompute(scene, bs.volume, quality, store)
+                pre_s = time.perf_counter() - t0
+                ref = reference(bs, scene, CONVERGED_REF_SPP, out_dir.parent / "reference-cache")
+                probe_scene = scene.model_copy(
+                    update={"render": scene.render.model_copy(update={"spp": NOISE_PROBE_SPP, "seed": 99})}
+                )
+                probe = bias_metrics(render_volpath(probe_scene, bs.volume), ref)["binned_relMAE"]
+                own = probe / np.sqrt(1.0 + CONVERGED_REF_SPP / NOISE_PROBE_SPP)
+                renderer = GraphRenderer(cache, bs.volume, scene)
+                g = bias_metrics(renderer.render(scene.camera, CONVERGED_SPP, 1, "gather"), ref)
+                f = bias_metrics(renderer.render(scene.camera, FIELD_AA_SPP, 1, "field"), ref)
+                s = cache.stats
+                rows.append(
+                    {
+                        "scene": bs.name,
+                        "camera": cam_name,
+                        "albedo": albedo,
+                        "nodes": s["nodes"],
+                        "graph_MB": round(s["graph_bytes"] / 2**20, 2),
+                        "precompute_wall_s": round(pre_s, 2),
+                        "gather_mean_ratio": g["mean_ratio"],
+                        "gather_binned_relMAE_pct": 100 * g["binned_relMAE"],
+                        "field_mean_ratio": f["mean_ratio"],
+                        "field_binned_relMAE_pct": 100 * f["binned_relMAE"],
+                        "ref_binned_noise_pct": 100 * own,
+                    }
+                )
+                print(_row_md(rows[-1], CONVERGED_COLUMNS), flush=True)
+    result = {"machine": machine(), "quality": quality, "reference_spp": CONVERGED_REF_SPP, "rows": rows}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stem = f"bench-converged-{time.strftime('%Y%m%d-%H%M%S')}"
+    (out_dir / f"{stem}.json").write_text(json.dumps(result, indent=2))
+    m = result["machine"]
+    table = (
+        f"# cloudgraph bench --converged\n\nMachine: {m['cpu']}, {m['cores']} cores; variant "
+        f"{m['variant']}; quality {quality}; gather {CONVERGED_SPP} spp, field {FIELD_AA_SPP} spp; "
+        f"reference volpath {CONVERGED_REF_SPP} spp, RR off.\n\n" + _table(rows, CONVERGED_COLUMNS)
+    )
+    (out_dir / f"{stem}.md").write_text(table)
+    print(table)
+    return result
+
+
+CONVERGED_COLUMNS = [
+    "scene",
+    "camera",
+    "albedo",
+    "nodes",
+    "graph_MB",
+    "gather_mean_ratio",
+    "gather_binned_relMAE_pct",
+    "field_mean_ratio",
+    "field_binned_relMAE_pct",
+    "ref_binned_noise_pct",
+]
 
 COLUMNS = [
     "scene",

@@ -97,11 +97,14 @@ def _cmd_precompute(args: argparse.Namespace) -> None:
 
 
 def _cmd_bench(args: argparse.Namespace) -> None:
-    from .bench import run_bench
+    from .bench import run_bench, run_converged
     from .mitsuba_scene import set_variant
 
     set_variant()
-    run_bench(quick=args.quick, scenes=args.scene, out_dir=args.out_dir)
+    if args.converged:
+        run_converged(scenes=args.scene, out_dir=args.out_dir)
+    else:
+        run_bench(quick=args.quick, scenes=args.scene, out_dir=args.out_dir)
 
 
 def _cmd_info(args: argparse.Namespace) -> None:
@@ -179,7 +182,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = sub.add_parser("bench", help="graph vs volpath: speed and accuracy (BENCHMARK.md)")
     b.add_argument("--quick", action="store_true", help="a small subset, minutes on two cores")
-    b.add_argument("--scene", action="append", help="only these scenes (repeatable)")
+    b.add_argument(
+        "--converged",
+        action="store_true",
+        help="accuracy only: converged gather and field, 4096-spp references",
+    )
+    b.add_argument(
+        "--scene", action="append", help="only these scenes (repeatable; 'holdout' is never default)"
+    )
     b.add_argument("--out-dir", default="bench/results")
     b.set_defaults(func=_cmd_bench)
 
