@@ -32,6 +32,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from .errors import VolumeError
 from .tracing import DensityField, sample_collision, uniform_sphere
 from .volume import Volume
 
@@ -262,7 +263,9 @@ def node_cells(points: np.ndarray, radius: float, origin: np.ndarray) -> np.ndar
     corner below every point), so that every point of a cube is within r of its centre."""
     cell = np.floor((points - origin) / (2.0 * radius / np.sqrt(3.0))).astype(np.int64)
     if cell.size and (cell.min() < 0 or cell.max() >= 1 << 21):
-        raise ValueError("the medium spans more than 2^21 node cells along an axis; raise the node radius")
+        raise VolumeError(
+            "the medium spans more than 2^21 node cells along an axis; resample the volume coarser"
+        )
     return (cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2]
 
 
