@@ -18,6 +18,10 @@ point of a cube is within r of its centre; every collision joins the node of its
 node sits at the mean of its collisions. This is the order-independent, vectorised form of
 "closest node within r, else a new node": it gives the same kind of cells and the same result
 for the same seed on any machine, and new collisions (reinforcement) find their node by key.
+
+The build runs in fixed chunks of light paths and flights, each reduced into a
+:class:`NodeTable` and dropped: memory grows with the nodes, not with the light paths, and the
+graph is the same bytes however the chunks are cut or ordered.
 """
 
 from __future__ import annotations
