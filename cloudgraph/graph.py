@@ -317,6 +317,7 @@ class NodeTable:
         self.origin, self.unit = np.asarray(origin, float), float(radius) / FIXED_POINT
         self.keys = np.zeros(0, np.int64)
         self.order = np.zeros(0, np.int64)  # node indices sorted by key
+        self.sorted_keys = np.zeros(0, np.int64)  # keys[order]
         self.count = np.zeros(0, np.int64)
         self.sum = np.zeros((0, 3), np.int64)
         self.kept = np.zeros((0, MEMBERS_KEPT, 3), np.float32)
@@ -329,22 +330,23 @@ class NodeTable:
 
     def index(self, keys: np.ndarray) -> np.ndarray:
         """Node indices of cell keys; cells without a node become new nodes."""
-        pos = np.searchsorted(self.keys[self.order], keys)
+        pos = np.searchsorted(self.sorted_keys, keys)
         found = np.zeros(len(keys), bool)
         inside = pos < len(self.order)
-        found[inside] = self.keys[self.order[pos[inside]]] == keys[inside]
+        found[inside] = self.sorted_keys[pos[inside]] == keys[inside]
         new = np.unique(keys[~found])
         if len(new):
             n, m = len(self), len(new)
             self.keys = np.concatenate([self.keys, new])
             self.order = np.argsort(self.keys, kind="stable")
+            self.sorted_keys = self.keys[self.order]
             self.count = np.concatenate([self.count, np.zeros(m, np.int64)])
             self.sum = np.concatenate([self.sum, np.zeros((m, 3), np.int64)])
             self.kept = np.concatenate([self.kept, np.zeros((m, MEMBERS_KEPT, 3), np.float32)])
             self.priority = np.concatenate([self.priority, np.full((m, MEMBERS_KEPT), np.inf)])
             self.out = np.concatenate([self.out, np.zeros(m, np.int64)])
             self.counts.resize((n + m, n + m))
-        return self.order[np.searchsorted(self.keys[self.order], keys)]
+        return self.order[np.searchsorted(self.sorted_keys, keys)]
 
     def merge(self, keys, points, priority, src, dst) -> None:
         """Adds collisions ((M,) cell keys, (M, 3) points, (M,) priorities in [0, 1)) and

@@ -19,6 +19,12 @@ from cloudgraph.volume import sphere_volume
 
 from ..helpers import LIGHT, medium_scene, reference, render_march
 
+
+def graph_arrays(g) -> list[np.ndarray]:
+    """Every array of a graph, for byte-for-byte comparisons."""
+    return [g.positions, g.search_radius, g.out_samples, g.counts.indptr, g.counts.indices, g.counts.data]
+
+
 # ------------------------------------------------------------------ 1. counts
 
 
@@ -192,12 +198,7 @@ def test_a_fixed_seed_gives_identical_caches_in_separate_stores(variant, tmp_pat
     assert a.keys == b.keys
     ga, gb = a.graph, b.graph
     for x, y in [
-        (ga.positions, gb.positions),
-        (ga.search_radius, gb.search_radius),
-        (ga.out_samples, gb.out_samples),
-        (ga.counts.indptr, gb.counts.indptr),
-        (ga.counts.indices, gb.counts.indices),
-        (ga.counts.data, gb.counts.data),
+        *zip(graph_arrays(ga), graph_arrays(gb), strict=True),
         (a.radiance, b.radiance),
         (a.radiance_gather, b.radiance_gather),
         (a.field.tau_light, b.field.tau_light),
@@ -288,14 +289,7 @@ def test_the_graph_is_the_same_however_the_work_is_cut(variant, monkeypatch):
     monkeypatch.setattr(graph_module, "CHUNK_FLIGHTS", 777)
     cut = build_graph(volume, 0.5, params)
     assert whole.n_nodes > 500 and whole.stats["collisions"] == cut.stats["collisions"]
-    for x, y in [
-        (whole.positions, cut.positions),
-        (whole.search_radius, cut.search_radius),
-        (whole.out_samples, cut.out_samples),
-        (whole.counts.indptr, cut.counts.indptr),
-        (whole.counts.indices, cut.counts.indices),
-        (whole.counts.data, cut.counts.data),
-    ]:
+    for x, y in zip(graph_arrays(whole), graph_arrays(cut), strict=True):
         assert x.dtype == y.dtype and x.tobytes() == y.tobytes()
 
 

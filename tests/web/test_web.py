@@ -31,18 +31,20 @@ MIN_ORBIT_FPS = 20
 #: The real-time view against the server's `field` render of the same camera, at rest.
 MAX_FIELD_REL_MAE = 0.03
 
-# Gray values of the viewport image at 64x64, drawn through a canvas in the page.
-PIXELS_JS = """() => {
-  const img = document.querySelector('#view-img');
+# Gray values at 64x64 of an image source (an <img> or an ImageBitmap), drawn through a canvas.
+GRAY_64_JS = """function gray64(src) {
   const c = document.createElement('canvas');
   c.width = 64; c.height = 64;
   const ctx = c.getContext('2d');
-  ctx.drawImage(img, 0, 0, 64, 64);
+  ctx.drawImage(src, 0, 0, 64, 64);
   const d = ctx.getImageData(0, 0, 64, 64).data;
   const out = [];
   for (let i = 0; i < d.length; i += 4) out.push((d[i] + d[i + 1] + d[i + 2]) / 3);
   return out;
 }"""
+
+# ... of the viewport image, in the page.
+PIXELS_JS = "() => { " + GRAY_64_JS + " return gray64(document.querySelector('#view-img')); }"
 
 
 @pytest.fixture(scope="module")
@@ -238,19 +240,15 @@ def _wait_rest(page, after_frames: int) -> None:
     )
 
 
-# Gray values at 64x64 of a PNG (given as base64), decoded in the page.
-PNG_PIXELS_JS = """async (b64) => {
+# ... of a PNG (given as base64), decoded in the page.
+PNG_PIXELS_JS = (
+    "async (b64) => { "
+    + GRAY_64_JS
+    + """
   const bytes = Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
-  const bitmap = await createImageBitmap(new Blob([bytes], { type: 'image/png' }));
-  const c = document.createElement('canvas');
-  c.width = 64; c.height = 64;
-  const ctx = c.getContext('2d');
-  ctx.drawImage(bitmap, 0, 0, 64, 64);
-  const d = ctx.getImageData(0, 0, 64, 64).data;
-  const out = [];
-  for (let i = 0; i < d.length; i += 4) out.push((d[i] + d[i + 1] + d[i + 2]) / 3);
-  return out;
+  return gray64(await createImageBitmap(new Blob([bytes], { type: 'image/png' })));
 }"""
+)
 
 
 def _shown_pixels(page) -> list[float]:
