@@ -241,6 +241,7 @@ def bake_field(
     t0 = time.perf_counter()
     grid = NodeGrid.build(graph.positions, graph.search_radius, radiance_gather * np.asarray(albedo)[None, :])
     G = grid.lookup(p, (0.05 * node_radius) ** 2, mi.Bool(True))
+    dr.eval(G)  # one kernel for the three channels
     G = np.stack([np.array(c, np.float32) for c in (G.x, G.y, G.z)], axis=1)
     G = _fill_empty(_scatter(near, G, (nz, ny, nx, 3)), near.reshape(nz, ny, nx))
     G_tex = linear_texture(G)
@@ -350,6 +351,7 @@ def _gather_ms(medium, G_tex, points: np.ndarray, step: float, seed: int) -> np.
     d = fr.to_world(w)
     o = dr.gather(mi.Point3f, mi.Point3f(*(points[:, c].astype(np.float32) for c in range(3))), point)
     L = _march_ms(medium, G_tex, o, d, step)
+    dr.eval(L)  # one kernel: read channel by channel, each would run the march again
     out = np.stack([np.array(c, np.float64) for c in (L.x, L.y, L.z)], axis=1)
     return out.reshape(m, k, 3).mean(axis=1).astype(np.float32)
 

@@ -208,6 +208,7 @@ def trace_light_paths(
     )
     buf = dr.full(mi.Float, np.nan, n_paths * max_collisions * 3)
     n = _walk(field, o, d, rng, buf, max_collisions)
+    dr.eval(buf, n)  # one kernel: read one by one, each output would run the walk again
     positions = np.array(buf, dtype=np.float32).reshape(n_paths, max_collisions, 3)
     return positions, np.array(n, dtype=np.int32)
 
@@ -244,6 +245,7 @@ def trace_flights(
     d = uniform_sphere(rng)
     t, collided = sample_collision(field, o, d, rng, mi.Bool(True))
     p = o + t * d
+    dr.eval(p, collided)  # one kernel: read one by one, each output would run the walk again
     return np.stack([np.array(c) for c in (p.x, p.y, p.z)], axis=1), np.array(collided, bool)
 
 

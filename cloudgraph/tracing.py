@@ -48,10 +48,12 @@ class DensityField:
         texture: density in the unit cube, cell-centred, trilinear, clamped (as ``gridvolume``).
         world_to_unit: affine map of world points to the unit cube; ray parameters are kept.
         scale: ``density_scale``, per world unit.
-        majorant: max sigma_t over the medium, per world unit (for delta and ratio tracking).
+        majorant: max sigma_t over the medium, per world unit (0: nothing to track).
         blocks: max density over blocks of BLOCK^3 voxels (flat, x fastest), for skipping empty
             space; block_counts: blocks per axis (x, y, z); block_unit: a block's side in the
-            unit cube, per axis.
+            unit cube, per axis; nudge: how far past a block's exit tracking resumes, world units
+            (1e-5 of a block: negligible medium skipped).
+        max_steps: iteration cap of a walk (null collisions and block crossings).
     """
 
     texture: object
@@ -61,6 +63,7 @@ class DensityField:
     blocks: object
     block_counts: tuple
     block_unit: tuple
+    nudge: float
     max_steps: int
 
     @classmethod
@@ -82,7 +85,8 @@ class DensityField:
             mi.Float(blocks.ravel()),
             (bx, by, bz),
             (BLOCK / nx, BLOCK / ny, BLOCK / nz),
-            int(min(16 * expected + 1024, 2**31 - 1)),
+            1e-5 * BLOCK * float(np.min(volume.voxel_size)),
+            int(min(16 * expected + 4 * (bx + by + bz) + 1024, 2**31 - 1)),
         )
 
     def sigma_t(self, p: mi.Point3f) -> mi.Float:
@@ -100,8 +104,9 @@ class DensityField:
         b = dr.clip(mi.Vector3i(dr.floor(pu / side)), 0, counts - 1)
         rho = dr.gather(mi.Float, self.blocks, b.x + counts.x * (b.y + counts.y * b.z), active)
         lo = mi.Vector3f(b) * side
-        inv = dr.select(dr.abs(du) > 1e-12, dr.rcp(du), dr.inf)
-        leave = dr.select(du > 0, lo + side - pu, lo - pu) * inv
+        # A ray parallel to an axis never leaves through that axis's faces
+        moving = dr.abs(du) > 1e-12
+        leave = dr.select(moving, dr.select(du > 0, lo + side - pu, lo - pu) * dr.rcp(du), dr.inf)
         return rho * self.scale, t + dr.minimum(dr.minimum(leave.x, leave.y), leave.z)
 
     def box_interval(self, o: mi.Point3f, d: mi.Vector3f) -> tuple[mi.Float, mi.Float]:
@@ -117,13 +122,35 @@ class DensityField:
         return t0, t1
 
 
+def majorant_step(
+    field: DensityField, o: mi.Point3f, d: mi.Vector3f, t: mi.Float, t_end: mi.Float, rng: mi.PCG32
+) -> tuple[mi.Float, mi.Float, mi.Bool, mi.Float]:
+    """One step of tracking against the block majorants (pbrt-v4's majorant grid): a tentative
+    collision at rate sigma_maj of the block holding o + t d, if it falls inside that block.
+
+    Returns:
+        (sigma_maj, t_c, inside, t_next): the block's majorant; the tentative collision t_c;
+        whether it lies in the block (and before t_end); else t_next, where the next block
+        begins (the exponential is memoryless, so tracking resumes there with a fresh sample).
+    """
+    sigma_maj, t_leave = field.block(o, d, t, mi.Bool(True))
+    t_leave = dr.minimum(t_leave, t_end)
+    u = rng.next_float32()
+    t_c = t + dr.select(sigma_maj > 0, -dr.log(1.0 - u) / dr.maximum(sigma_maj, 1e-30), dr.inf)
+    inside = t_c < t_leave
+    # Past the block's exit by a hair, so that the next lookup finds the next block
+    t_next = dr.maximum(t_leave + field.nudge, t * (1.0 + 2.0**-20))
+    return sigma_maj, t_c, inside, t_next
+
+
 @dr.syntax
 def sample_collision(
     field: DensityField, o: mi.Point3f, d: mi.Vector3f, rng: mi.PCG32, active: mi.Bool
 ) -> tuple[mi.Float, mi.Bool]:
-    """Free-flight sampling by delta tracking: the distance to the first real collision.
-
-    Distances are sampled with density sigma_t(x) T_r(o, x) along o + t d (d of unit length).
+    """Free-flight sampling by delta tracking against the block majorants: the distance to the
+    first real collision, with density sigma_t(x) T_r(o, x) along o + t d (d of unit length).
+    Thin media take as many null collisions as their own density asks for, not the densest
+    voxel's (a 35x difference on smoke1).
 
     Returns:
         (t, collided): collided is False where the ray leaves the medium first.
@@ -133,13 +160,13 @@ def sample_collision(
     collided = mi.Bool(False)
     steps = mi.UInt32(0)  # Iteration cap (field.max_steps)
     while dr.hint(active, label="delta_tracking"):
-        # Tentative collision with the majorant, accepted with probability sigma_t / majorant
-        t += -dr.log(1.0 - rng.next_float32()) / field.majorant
-        inside = t < t_end
-        real = inside & (rng.next_float32() * field.majorant < field.sigma_t(o + t * d))
+        # A tentative collision in this block, accepted with probability sigma_t / sigma_maj
+        sigma_maj, t_c, inside, t_next = majorant_step(field, o, d, t, t_end, rng)
+        real = inside & (rng.next_float32() * sigma_maj < field.sigma_t(o + t_c * d))
         collided |= active & real
+        t = dr.select(inside, t_c, t_next)
         steps += 1
-        active &= inside & ~real & (steps < field.max_steps)
+        active &= ~real & (t < t_end) & (steps < field.max_steps)
     return t, collided
 
 
@@ -147,17 +174,18 @@ def sample_collision(
 def ratio_tracking(
     field: DensityField, o: mi.Point3f, d: mi.Vector3f, rng: mi.PCG32, active: mi.Bool
 ) -> mi.Float:
-    """Transmittance from o along d to the box boundary, by ratio tracking (unbiased, in [0, 1])."""
+    """Transmittance from o along d to the box boundary, by ratio tracking against the block
+    majorants (unbiased, in [0, 1])."""
     t, t_end = field.box_interval(o, d)
     Tr = mi.Float(1.0)  # Transmittance estimate
     active = mi.Bool(active) & (t < t_end) & (field.majorant > 0)
     steps = mi.UInt32(0)  # Iteration cap (field.max_steps)
     while dr.hint(active, label="ratio_tracking"):
-        t += -dr.log(1.0 - rng.next_float32()) / field.majorant
-        active &= t < t_end
-        Tr[active] *= 1.0 - field.sigma_t(o + t * d) / field.majorant
+        sigma_maj, t_c, inside, t_next = majorant_step(field, o, d, t, t_end, rng)
+        Tr[active & inside] *= 1.0 - field.sigma_t(o + t_c * d) / sigma_maj
+        t = dr.select(inside, t_c, t_next)
         steps += 1
-        active &= (Tr > 1e-6) & (steps < field.max_steps)  # below 1e-6 the light is gone
+        active &= (t < t_end) & (Tr > 1e-6) & (steps < field.max_steps)  # below 1e-6 the light is gone
     return Tr
 
 
