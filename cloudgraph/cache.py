@@ -6,7 +6,9 @@ Keys are sha256 of canonical JSON with the engine format version included:
 - radiance key: graph key + albedo + light + max_depth (+ lighting parameters).
 
 Files are ``.npz`` archives carrying their format version, written to a temporary name in the
-same folder and renamed into place, so a reader never sees a half-written cache.
+same folder and renamed into place, so a reader never sees a half-written cache. Their bytes
+depend on their content only (no timestamps, no stage times): the same key gives the same file
+however many workers built it.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ import hashlib
 import json
 import os
 import tempfile
+import zipfile
 from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -106,7 +109,7 @@ class CacheStore:
             indptr=c.indptr.astype(np.int64),
             indices=c.indices.astype(np.uint32),
             data=_compact(c.data),
-            stats=json.dumps(graph.stats),
+            stats=json.dumps(_content(graph.stats)),
         )
 
     def load_graph(self, key: str) -> Graph | None:
@@ -137,7 +140,7 @@ class CacheStore:
             kind="radiance",
             radiance=radiance.astype(np.float32),
             radiance_gather=radiance_gather.astype(np.float32),
-            stats=json.dumps(stats),
+            stats=json.dumps(_content(stats)),
         )
 
     def load_radiance(self, key: str) -> tuple[tuple[np.ndarray, np.ndarray], dict] | None:
@@ -179,11 +182,23 @@ def atomic_writer(path: Path):
 
 
 def _atomic_save(path: Path, kind: str, compress: bool = False, **arrays) -> Path:
-    with atomic_writer(path) as f:
-        (np.savez_compressed if compress else np.savez)(
-            f, format_version=ENGINE_FORMAT_VERSION, kind=kind, **arrays
-        )
+    """An .npz as ``np.savez`` writes it, but with fixed timestamps: the same arrays give the same
+    bytes, whichever worker wrote them and when."""
+    arrays = {"format_version": ENGINE_FORMAT_VERSION, "kind": kind, **arrays}
+    method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
+    with atomic_writer(path) as f, zipfile.ZipFile(f, "w", method) as z:
+        for name, a in arrays.items():
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = method
+            with z.open(info, "w", force_zip64=True) as out:
+                np.lib.format.write_array(out, np.asanyarray(a), allow_pickle=False)
     return path
+
+
+def _content(stats: dict) -> dict:
+    """Stats without the stage times (``*_s``): what a file keeps, so that its bytes depend on its
+    content only."""
+    return {k: v for k, v in stats.items() if not k.endswith("_s")}
 
 
 def _compact(a: np.ndarray) -> np.ndarray:

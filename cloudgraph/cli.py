@@ -84,11 +84,16 @@ def _cmd_precompute(args: argparse.Namespace) -> None:
         print(f"{k}: {v}")
     s = cache.stats
     print(f"nodes {s['nodes']}  edges {s['edges']}  collisions {s['collisions']}  radius {s['radius']:.4g}")
-    print(
-        f"build {s['build_s']:.2f} s (trace {s['trace_s']:.2f}, group {s['group_s']:.2f}, "
-        f"reinforce {s['reinforce_s']:.2f})  lighting {s['lighting_s']:.2f} s  "
-        f"transport {s['transport_s']:.2f} s ({s['transport_iterations']} products)"
-    )
+    if not s["graph_reused"]:
+        print(
+            f"build {s['build_s']:.2f} s (trace {s['trace_s']:.2f}, group {s['group_s']:.2f}, "
+            f"reinforce {s['reinforce_s']:.2f})"
+        )
+    if not s["radiance_reused"]:
+        print(
+            f"lighting {s['lighting_s']:.2f} s  transport {s['transport_s']:.2f} s "
+            f"({s['transport_iterations']} products)"
+        )
     print(
         f"bytes: graph {s['graph_bytes']}  radiance {s['radiance_bytes']}  "
         f"(graph {'reused' if s['graph_reused'] else 'built'}, "

@@ -378,44 +378,96 @@ class NodeTable:
         self.counts = self.counts + sp.csr_matrix((ones, (s[hit], self.index(dst[hit]))), shape=(n, n))
 
 
-def build_graph(volume: Volume, density_scale: float, params: BuildParams, progress=None) -> Graph:
+class GraphBuilder:
+    """What every chunk of one graph's build needs (the medium, the parameters, the cell origin),
+    and the chunks themselves. A chunk is a pure function of (stage, index, inputs), so any
+    process that makes a builder from the same (volume, density_scale, params) computes the same
+    chunk: the build can be spread over workers (worker/chunks.py) and merged into the same
+    graph, since a :class:`NodeTable` is the same whatever the order of its merges.
+
+    Stages: ``trace``, light paths from index * CHUNK_PATHS on; ``flights``, reinforcement
+    flights from index * CHUNK_FLIGHTS on of one round, with inputs ``starts`` (M, 3) float32
+    start points, ``who`` (M,) int64 cell keys of their nodes and ``round`` (1,).
+    """
+
+    def __init__(self, volume: Volume, density_scale: float, params: BuildParams):
+        self.volume, self.params = volume, params
+        self.field = DensityField.from_volume(volume, density_scale)
+        self.origin = volume.world_bbox()[0] - params.radius
+
+    def n_chunks(self, stage: str, inputs: dict | None = None) -> int:
+        if stage == "trace":
+            return -(-self.params.n_paths // CHUNK_PATHS)
+        return -(-len(inputs["who"]) // CHUNK_FLIGHTS)
+
+    def chunk(self, stage: str, index: int, inputs: dict | None = None) -> tuple[np.ndarray, ...]:
+        """One chunk's collisions and samples, as :meth:`NodeTable.merge` takes them."""
+        if stage == "trace":
+            return self._trace(index * CHUNK_PATHS)
+        if stage == "flights":
+            return self._flights(index * CHUNK_FLIGHTS, inputs)
+        raise ValueError(f"unknown build stage {stage!r}")
+
+    def _trace(self, first: int) -> tuple[np.ndarray, ...]:
+        # Light paths (§4.3): every collision joins the node of its cell (§4.3.1) and has an
+        # outgoing sample unless it was the last one kept on a cut path: its successor is the
+        # next collision, or an escape when the path ended early.
+        p = self.params
+        n = min(CHUNK_PATHS, p.n_paths - first)
+        pos, n_col = trace_light_paths(
+            self.field, GRAPH_LIGHTS, self.volume.world_bbox(), n, p.max_collisions, p.seed, first
+        )
+        k = np.arange(p.max_collisions)[None, :]
+        valid = k < n_col[:, None]
+        keys = np.full(valid.shape, -1, np.int64)
+        points = pos[valid].astype(np.float64)
+        keys[valid] = node_cells(points, p.radius, self.origin)
+        has_next = k + 1 < n_col[:, None]
+        escaped = (k + 1 == n_col[:, None]) & (n_col[:, None] < p.max_collisions)
+        succ = np.concatenate([keys[:, 1:], np.full((n, 1), -1, np.int64)], axis=1)
+        has_out = has_next | escaped
+        priority = uniform_hash(p.seed, 0, ((first + np.arange(n))[:, None] * p.max_collisions + k)[valid])
+        return keys[valid], points, priority, keys[has_out], np.where(has_next, succ, -1)[has_out]
+
+    def _flights(self, a: int, inputs: dict) -> tuple[np.ndarray, ...]:
+        # Each flight is a sample of its node; where it collides is a collision too
+        p, rnd = self.params, int(inputs["round"][0])
+        starts = np.asarray(inputs["starts"][a : a + CHUNK_FLIGHTS], np.float64)
+        hits, collided = trace_flights(self.field, starts, p.seed + 1 + rnd, a)
+        hits = hits[collided].astype(np.float64)
+        hit_keys = node_cells(hits, p.radius, self.origin)
+        dst = np.full(len(collided), -1, np.int64)
+        dst[collided] = hit_keys
+        priority = uniform_hash(p.seed, 2 + rnd, a + np.flatnonzero(collided))
+        return hit_keys, hits, priority, np.asarray(inputs["who"][a : a + CHUNK_FLIGHTS]), dst
+
+
+def local_chunks(builder: GraphBuilder, stage: str, inputs: dict | None = None):
+    """Runs a stage's chunks one after another in this process (the default ``chunks``)."""
+    for i in range(builder.n_chunks(stage, inputs)):
+        yield builder.chunk(stage, i, inputs)
+
+
+def build_graph(
+    volume: Volume, density_scale: float, params: BuildParams, progress=None, chunks=local_chunks
+) -> Graph:
     """Builds the graph of a volume and density scale (a variant must be set).
 
-    ``progress(stage, fraction)`` is called as the build goes.
+    ``progress(stage, fraction)`` is called as the build goes. ``chunks(builder, stage, inputs)``
+    runs a stage's chunks (:meth:`GraphBuilder.chunk`) and yields their results in any order:
+    here by default, or spread over workers; the graph is the same bytes either way.
     """
     progress = progress or (lambda stage, fraction: None)
     t_start = time.perf_counter()
-    field = DensityField.from_volume(volume, density_scale)
-    origin = volume.world_bbox()[0] - params.radius
+    builder = GraphBuilder(volume, density_scale, params)
+    origin = builder.origin
     table = NodeTable(origin, params.radius)
 
-    # Light paths (§4.3), chunk by chunk: every collision joins the node of its cell (§4.3.1)
-    # and has an outgoing sample unless it was the last one kept on a cut path: its successor
-    # is the next collision, or an escape when the path ended early.
-    k = np.arange(params.max_collisions)[None, :]
-    for first in range(0, params.n_paths, CHUNK_PATHS):
-        progress("trace", 0.3 * first / params.n_paths)
-        n = min(CHUNK_PATHS, params.n_paths - first)
-        pos, n_col = trace_light_paths(
-            field, GRAPH_LIGHTS, volume.world_bbox(), n, params.max_collisions, params.seed, first
-        )
-        valid = k < n_col[:, None]
-        keys = np.full(valid.shape, -1, np.int64)
-        keys[valid] = node_cells(pos[valid].astype(np.float64), params.radius, origin)
-        has_next = k + 1 < n_col[:, None]
-        escaped = (k + 1 == n_col[:, None]) & (n_col[:, None] < params.max_collisions)
-        succ = np.concatenate([keys[:, 1:], np.full((n, 1), -1, np.int64)], axis=1)
-        has_out = has_next | escaped
-        points = pos[valid].astype(np.float64)
-        table.merge(
-            keys[valid],
-            points,
-            uniform_hash(
-                params.seed, 0, ((first + np.arange(n))[:, None] * params.max_collisions + k)[valid]
-            ),
-            keys[has_out],
-            np.where(has_next, succ, -1)[has_out],
-        )
+    # Light paths (§4.3), chunk by chunk, each reduced into the table and dropped
+    n = builder.n_chunks("trace")
+    for i, result in enumerate(chunks(builder, "trace")):
+        table.merge(*result)
+        progress("trace", 0.3 * (i + 1) / n)
     # Coverage seeds (our addition): light paths are cut at max_collisions, so in thick media
     # they never reach the far side. Points drawn in proportion to density seed nodes there too;
     # reinforcement then gives every node its own outgoing samples.
@@ -429,30 +481,20 @@ def build_graph(volume: Volume, density_scale: float, params: BuildParams, progr
     t0 = time.perf_counter()
     rng = np.random.default_rng(params.seed)
     for rnd in range(params.reinforce_rounds):
-        progress("reinforce", 0.5 + 0.1 * rnd)
         n_edges = np.diff(table.counts.indptr)
         deficit = np.maximum(params.min_out_samples - table.out, 0)
         deficit[(n_edges < params.min_out_edges) & (deficit == 0)] = params.min_out_samples
         if not deficit.any():
             break
-        # Each new flight starts at a random kept collision of its node; it is a sample of that
-        # node, and where it collides is a collision too. Collisions in cells without a node
-        # make new nodes (filled in the next round).
+        # Each new flight starts at a random kept collision of its node. Collisions in cells
+        # without a node make new nodes (filled in the next round).
         who = np.repeat(table.order, deficit[table.order])  # in order of keys
         pick = np.floor(rng.random(len(who)) * np.minimum(table.count[who], MEMBERS_KEPT)).astype(np.int64)
-        starts, who_keys = table.kept[who, pick].astype(np.float64), table.keys[who]
-        for a in range(0, len(who), CHUNK_FLIGHTS):
-            hits, collided = trace_flights(field, starts[a : a + CHUNK_FLIGHTS], params.seed + 1 + rnd, a)
-            hit_keys = node_cells(hits[collided].astype(np.float64), params.radius, origin)
-            dst = np.full(len(collided), -1, np.int64)
-            dst[collided] = hit_keys
-            table.merge(
-                hit_keys,
-                hits[collided].astype(np.float64),
-                uniform_hash(params.seed, 2 + rnd, a + np.flatnonzero(collided)),
-                who_keys[a : a + CHUNK_FLIGHTS],
-                dst,
-            )
+        inputs = {"starts": table.kept[who, pick], "who": table.keys[who], "round": np.array([rnd])}
+        n = builder.n_chunks("flights", inputs)
+        for i, result in enumerate(chunks(builder, "flights", inputs)):
+            table.merge(*result)
+            progress("reinforce", 0.3 + 0.7 * (rnd + (i + 1) / n) / params.reinforce_rounds)
     t_reinforce = time.perf_counter() - t0
 
     # Node positions (the mean of their collisions), counts, then search ranges from the k

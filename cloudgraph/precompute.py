@@ -17,7 +17,7 @@ import numpy as np
 from .cache import CacheStore, graph_key, radiance_key, volume_id
 from .errors import CacheError
 from .field import RadianceField, bake_field
-from .graph import BuildParams, Graph, build_graph, build_params
+from .graph import BuildParams, Graph, build_graph, build_params, local_chunks
 from .lighting import direct_radiance
 from .scene import Scene
 from .tracing import DensityField
@@ -101,11 +101,13 @@ def precompute(
     quality: str = "default",
     store: CacheStore | None = None,
     progress=None,
+    chunks=local_chunks,
     **build_overrides,
 ) -> RadianceCache:
     """Finds or builds the radiance cache for the scene's (volume, medium, light, depth).
 
-    ``progress(stage, fraction)`` is called as it goes. A variant must be set.
+    ``progress(stage, fraction)`` is called as it goes; ``chunks`` runs the graph build's chunks
+    (:func:`~cloudgraph.graph.build_graph`: here, or over workers). A variant must be set.
     """
     store = store or CacheStore()
     progress = progress or (lambda stage, fraction: None)
@@ -122,7 +124,7 @@ def precompute(
         graph_reused = graph is not None
         if graph is None:
             graph = build_graph(
-                volume, scene.medium.density_scale, params, progress=lambda s, f: progress(s, 0.7 * f)
+                volume, scene.medium.density_scale, params, lambda s, f: progress(s, 0.7 * f), chunks
             )
             store.save_graph(gkey, graph)
     if found is not None:

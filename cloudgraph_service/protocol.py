@@ -5,7 +5,7 @@ Job meta fields (``job.meta``), written by the API when it enqueues and by the w
 
 | field        | who     | meaning                                                          |
 |--------------|---------|------------------------------------------------------------------|
-| kind         | API     | precompute, render, frames or animation                          |
+| kind         | both    | precompute, render, frames or animation (API); helper (worker)   |
 | stage        | both    | the stage the job reports (``queued`` until a worker takes it)   |
 | fraction     | worker  | progress in [0, 1]                                               |
 | result_url   | API     | where the result is fetched once finished                        |
@@ -32,6 +32,7 @@ PRECOMPUTE_JOB = "worker.jobs.precompute_job"
 RENDER_JOB = "worker.jobs.render_job"
 FRAMES_JOB = "worker.jobs.frames_job"
 ENCODE_JOB = "worker.jobs.encode_job"
+CHUNK_JOB = "worker.jobs.chunk_job"  # a helper of another job's precompute (worker/chunks.py)
 
 # ----------------------------------------------------------------------------- time limits
 RESULT_TTL_S = 7 * 24 * 3600  # finished and failed jobs are kept this long

@@ -46,6 +46,7 @@ class Settings:
     UPLOAD_CHECK_S: float = 120.0  # reading an upload (in a child process) may take this long
     CACHE_MAX_GB: float = 20.0
     WORKER_RENDERERS: int = 4  # loaded radiance caches kept per worker
+    WORKER_THREADS: int = 0  # Dr.Jit threads per worker process (0: one per core)
 
     @classmethod
     def from_env(cls) -> Settings:
@@ -85,6 +86,7 @@ class Settings:
             UPLOAD_CHECK_S=_env("UPLOAD_CHECK_S", d.UPLOAD_CHECK_S, float),
             CACHE_MAX_GB=_env("CACHE_MAX_GB", d.CACHE_MAX_GB, float),
             WORKER_RENDERERS=_env("WORKER_RENDERERS", d.WORKER_RENDERERS, int),
+            WORKER_THREADS=_env("WORKER_THREADS", d.WORKER_THREADS, int),
         )
 
     @property

@@ -5,15 +5,26 @@ from __future__ import annotations
 import logging
 import subprocess
 import time
+import uuid
+from contextlib import nullcontext
+from functools import partial
 from pathlib import Path
 
 import numpy as np
-from rq import get_current_job
+from rq import Queue, Worker, get_current_job
 
 from cloudgraph.image import png_bytes, write_exr
 from cloudgraph.scene import parse_scene
-from cloudgraph_service.protocol import FRAME_FFMPEG, FRAME_FILE, VIDEO_FILE, cancel_key
+from cloudgraph_service.protocol import (
+    CHUNK_JOB,
+    FRAME_FFMPEG,
+    FRAME_FILE,
+    RESULT_TTL_S,
+    VIDEO_FILE,
+    cancel_key,
+)
 
+from .chunks import MAX_HELPERS, SharedChunks, help_run
 from .state import state
 
 log = logging.getLogger(__name__)
@@ -37,14 +48,61 @@ def report(stage: str, fraction: float) -> None:
 
 
 def _precompute(scene, volume, quality: str, progress):
-    """The scene's radiance cache; the store is then trimmed to its size limit (LRU)."""
+    """The scene's radiance cache, its graph built by every free worker (worker/chunks.py); the
+    store is then trimmed to its size limit (LRU)."""
+    from cloudgraph.graph import local_chunks
     from cloudgraph.precompute import precompute
     from cloudgraph.store import evict_lru
 
-    s = state()
-    cache = precompute(scene, volume, quality, s.caches, progress)
+    s, job = state(), get_current_job()
+    if job is None:  # called outside a job: build here
+        shared = nullcontext(local_chunks)
+    else:
+        run = f"{job.id}.{uuid.uuid4().hex[:8]}"
+        shared = SharedChunks(
+            job.connection,
+            run,
+            {"scene": scene.model_dump(mode="json"), "quality": quality},
+            s.caches.root / "runs" / run,
+            partial(_ask_helpers, job.connection, run),
+        )
+    with shared as chunks:
+        cache = precompute(scene, volume, quality, s.caches, progress, chunks)
     evict_lru(s.caches.root, int(s.settings.CACHE_MAX_GB * 2**30))
     return cache
+
+
+def _ask_helpers(connection, run: str) -> int:
+    """One helper job per other worker, at the front of the queue; returns how many."""
+    settings = state().settings
+    queue = Queue(settings.QUEUE, connection=connection)
+    n = max(0, min(Worker.count(connection=connection, queue=queue) - 1, MAX_HELPERS))
+    for _ in range(n):
+        queue.enqueue(
+            CHUNK_JOB,
+            run,
+            at_front=True,
+            job_timeout=settings.JOB_TIMEOUT_S,
+            result_ttl=RESULT_TTL_S,
+            failure_ttl=RESULT_TTL_S,
+            meta={"kind": "helper", "stage": "queued", "fraction": 0.0},
+        )
+    return n
+
+
+def _builder(spec: dict):
+    """The graph builder of a shared run's spec (worker/chunks.py)."""
+    from cloudgraph.graph import BuildParams, GraphBuilder
+
+    sc = parse_scene(spec["scene"])
+    return GraphBuilder(state().volume(sc), sc.medium.density_scale, BuildParams(**spec["params"]))
+
+
+def chunk_job(run: str) -> dict:
+    """Helps with another job's graph build (worker/chunks.py) until it ends."""
+    report("helping", 0.0)
+    n = help_run(get_current_job().connection, run, _builder)
+    return {"run": run, "chunks": n}
 
 
 def _renderer(scene, volume, quality: str, progress):

@@ -135,6 +135,10 @@ def run(running: Running, name: str) -> None:
     from cloudgraph.mitsuba_scene import set_variant
 
     variant = set_variant()
+    if settings.WORKER_THREADS > 0:
+        import drjit as dr
+
+        dr.set_thread_count(settings.WORKER_THREADS)
     import cloudgraph.integrators.graph  # noqa: F401  (registers the integrator for this variant)
 
     log.info("worker %s: variant %s, data %s, redis %s", name, variant, settings.DATA_DIR, settings.REDIS_URL)

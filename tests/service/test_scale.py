@@ -1,0 +1,105 @@
+"""One precompute over several workers (worker/chunks.py): the cache is the same bytes as one
+process builds, and a chunk whose worker died is redone. Real redis-server and worker processes."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rq import Queue
+from rq.job import Job
+
+from cloudgraph.cache import CacheStore
+from cloudgraph.scene import parse_scene
+from cloudgraph.volume import load_volume, noise_volume
+from worker.chunks import SharedChunks, _Run
+
+from ..engine.test_graph import graph_arrays
+from ..harness import BLENDER, Service, blender_cache, free_port, job_of, rq, start_service, upload, wait_job
+
+
+def test_two_workers_share_one_precompute_and_write_the_bytes_one_process_writes(tmp_path, variant):
+    from cloudgraph.precompute import precompute
+
+    svc = start_service(tmp_path / "svc", workers=2, WORKER_THREADS=1)
+    try:
+        with svc.client() as c:
+            vid = upload(c, BLENDER).json()["id"]
+            body = {**blender_cache(vid), "quality": "default"}  # 8 light-path chunks, then flights
+            r = c.post("/v1/caches", json=body)
+            assert r.status_code == 202, r.text
+            assert wait_job(c, job_of(r), timeout=300)["status"] == "finished"
+            keys = c.get(f"/v1/caches/{r.json()['id']}").json()["keys"]
+        # The other worker helped: its helper job ran chunks of this build
+        queue = Queue("cloudgraph", connection=rq(svc))
+        helpers = [
+            j for j in Job.fetch_many(queue.finished_job_registry.get_job_ids(), connection=rq(svc)) if j
+        ]
+        helpers = [j for j in helpers if j.meta.get("kind") == "helper"]
+        assert len(helpers) == 1 and helpers[0].return_value()["chunks"] >= 2, [
+            (j.meta, j.return_value()) for j in helpers
+        ]
+        assert not list(rq(svc).scan_iter("cloudgraph:run:*"))  # the run's keys are gone
+        assert not any((svc.data_dir / "cache" / "runs").iterdir())  # and its folder's files
+    finally:
+        svc.stop()
+
+    # The same cache, built by this process alone
+    camera = {"eye": [30, 0, 5], "target": [0, 0, 5], "up": [0, 0, 1]}  # any: the cache does not depend on it
+    scene = parse_scene(
+        {"medium": body["medium"], "light": body["light"], "volume": {"path": str(BLENDER)}, "camera": camera}
+    )
+    local = CacheStore(tmp_path / "local")
+    cache = precompute(scene, load_volume(BLENDER), "default", local)
+    assert cache.keys == keys
+    served = CacheStore(svc.data_dir / "cache")
+    for path in ("graph_path", "radiance_path", "field_path"):
+        mine, theirs = getattr(local, path), getattr(served, path)
+        key = keys["graph_key"] if path == "graph_path" else keys["radiance_key"]
+        assert mine(key).read_bytes() == theirs(key).read_bytes(), path
+
+
+@pytest.fixture
+def redis_only(tmp_path):
+    svc = Service(tmp_path, {}, free_port(), 0)
+    svc.start_redis()
+    yield rq(svc)
+    svc.stop()
+
+
+def test_a_chunk_whose_worker_died_is_redone_and_the_graph_is_the_same(tmp_path, variant, redis_only):
+    """A worker killed while it holds a chunk looks to the others like this: a claimed task whose
+    lease is never renewed and whose result never comes."""
+    from cloudgraph.graph import build_graph, build_params
+
+    volume = noise_volume(24, seed=5)
+    ds = 1.0 / float(volume.density.max() * volume.voxel_size.max())
+    params = build_params(volume, ds, "draft", n_paths=1 << 16)  # 4 light-path chunks
+    alone = build_graph(volume, ds, params)
+
+    dead: list[str] = []
+
+    def claim_and_die():  # takes the first chunk it can, then is never heard of again
+        run = _Run(redis_only, "died", lease_s=1.0)
+        while not dead and not stop.is_set():
+            task = run.claim("killed-worker:1")
+            if task is not None:
+                dead.append(task)
+
+    stop = threading.Event()
+    thief = threading.Thread(target=claim_and_die)
+    thief.start()
+    try:
+        with SharedChunks(redis_only, "died", {}, tmp_path / "runs" / "died", lease_s=1.0) as shared:
+            shared_graph = build_graph(volume, ds, params, chunks=shared)
+    finally:
+        stop.set()
+        thief.join()
+    assert dead and shared.redone >= 1, (dead, shared.redone)
+    for a, b in zip(graph_arrays(alone), graph_arrays(shared_graph), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert (
+        not list(redis_only.scan_iter("cloudgraph:run:*")) and not Path(tmp_path / "runs" / "died").exists()
+    )

@@ -1,0 +1,243 @@
+"""One precompute over many workers (README, "Scale"): the graph build's chunks
+(:meth:`cloudgraph.graph.GraphBuilder.chunk`) shared through Redis.
+
+The worker that runs a precompute job coordinates it (:class:`SharedChunks`). For each stage of
+the build it writes the stage's inputs to a run folder on the shared cache volume, pushes one
+task per chunk to a Redis list and works through the list itself, while helper jobs (put at the
+front of the queue, one per other worker) take tasks from the same list and leave their results
+in the run folder (:func:`help_run`). A task is claimed atomically with a lease that its holder
+renews every LEASE_S / 3 seconds; the task of a killed worker (its lease lapsed) goes back on the
+list. The coordinator merges results as they come: :class:`~cloudgraph.graph.NodeTable` merges
+commute, so the graph is the same bytes whoever ran which chunk.
+
+Keys, under ``cloudgraph:run:<run>:``:
+
+| key           | what                                                                      |
+|---------------|---------------------------------------------------------------------------|
+| spec          | JSON {scene, quality, dir}: what a helper needs; expires unless the       |
+|               | coordinator renews it, so helpers of a dead coordinator stop              |
+| stage         | JSON {gen, stage, inputs}: the stage now running (gen counts stages)      |
+| todo          | tasks ``<gen>:<chunk>`` not yet claimed                                   |
+| lease:<task>  | the holder of a claimed task; expires LEASE_S after its last renewal      |
+| done          | tasks finished by helpers (results in ``<dir>/<gen>-<chunk>.npz``)        |
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import socket
+import threading
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+from redis import Redis
+
+from cloudgraph.cache import atomic_writer
+
+log = logging.getLogger("cloudgraph.chunks")
+
+#: A claimed task goes back on the list when its holder has not renewed its lease for this long.
+LEASE_S = 10.0
+#: How often an idle helper or a waiting coordinator looks again.
+POLL_S = 0.05
+#: Most helpers asked for one precompute.
+MAX_HELPERS = 16
+
+# LPOP a task and lease it to ARGV[1] for ARGV[2] ms, in one step (no task is ever held unleased)
+_CLAIM = """
+local t = redis.call('LPOP', KEYS[1])
+if t then redis.call('SET', KEYS[2] .. t, ARGV[1], 'PX', ARGV[2]) end
+return t
+"""
+
+
+def run_key(run: str, part: str) -> str:
+    return f"cloudgraph:run:{run}:{part}"
+
+
+def holder_name() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+class _Run:
+    """A run's keys and the operations both sides perform."""
+
+    def __init__(self, redis: Redis, run: str, lease_s: float):
+        self.redis, self.run, self.lease_ms = redis, run, int(lease_s * 1000)
+        self._claim = redis.register_script(_CLAIM)
+
+    def key(self, part: str) -> str:
+        return run_key(self.run, part)
+
+    def claim(self, holder: str) -> str | None:
+        t = self._claim(keys=[self.key("todo"), self.key("lease:")], args=[holder, self.lease_ms])
+        return None if t is None else t.decode()
+
+    @contextmanager
+    def leased(self, task: str, holder: str):
+        """Renews the task's lease while the block runs, then drops it."""
+        stop = threading.Event()
+
+        def renew():
+            while not stop.wait(self.lease_ms / 3000):
+                try:
+                    self.redis.set(self.key(f"lease:{task}"), holder, px=self.lease_ms)
+                except Exception:  # Redis away for a moment: the next renewal tries again
+                    log.exception("lease renewal failed")
+
+        t = threading.Thread(target=renew, daemon=True)
+        t.start()
+        try:
+            yield
+        finally:
+            stop.set()
+            t.join()
+            self.redis.delete(self.key(f"lease:{task}"))
+
+
+def _inputs(folder: Path, gen: int, names: list[str]) -> dict:
+    return {name: np.load(folder / f"{gen}-{name}.npy", mmap_mode="r") for name in names}
+
+
+class SharedChunks:
+    """The ``chunks`` argument of :func:`cloudgraph.precompute.precompute` that spreads a build
+    over the workers: used as a context manager around the precompute (its exit ends the run:
+    helpers stop, keys and the run folder go).
+
+    Args:
+        redis: the queue's Redis.
+        run: a name unique to this precompute attempt.
+        spec: ``scene`` (a scene dict) and ``quality``: what a helper needs to make the builder
+            (the build parameters are added at the first stage).
+        folder: the run folder, on a volume every worker shares.
+        ask_helpers: called once, when the first stage starts, to enqueue helper jobs; returns
+            how many it asked for.
+        lease_s: see :data:`LEASE_S`.
+    """
+
+    def __init__(self, redis: Redis, run: str, spec: dict, folder: Path, ask_helpers=None, lease_s=LEASE_S):
+        self.r = _Run(redis, run, lease_s)
+        self.spec = {**spec, "dir": str(folder)}
+        self.folder, self.ask_helpers = Path(folder), ask_helpers
+        self.holder = holder_name()
+        self.gen, self.helpers, self.redone = 0, None, 0
+        self._stop = threading.Event()
+        self._beat = threading.Thread(target=self._renew_spec, daemon=True)
+
+    def __enter__(self) -> SharedChunks:
+        # Folders of runs whose coordinator died (their spec expired) go first
+        for old in self.folder.parent.glob("*"):
+            if not self.r.redis.exists(run_key(old.name, "spec")) and time.time() - old.stat().st_mtime > 600:
+                shutil.rmtree(old, ignore_errors=True)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self._set_spec()
+        self._beat.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        self._beat.join()
+        r = self.r.redis
+        leases = list(r.scan_iter(match=self.r.key("lease:*"), count=1000))
+        r.delete(self.r.key("spec"), self.r.key("stage"), self.r.key("todo"), self.r.key("done"), *leases)
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+    def _set_spec(self) -> None:
+        self.r.redis.set(self.r.key("spec"), json.dumps(self.spec), px=3 * self.r.lease_ms)
+
+    def _renew_spec(self) -> None:
+        while not self._stop.wait(self.r.lease_ms / 3000):
+            try:
+                self._set_spec()
+            except Exception:
+                log.exception("could not renew the run's spec")
+
+    def __call__(self, builder, stage: str, inputs: dict | None = None):
+        """Runs one stage's chunks here and on the helpers; yields results as they come."""
+        r, gen = self.r, self.gen + 1
+        self.gen = gen
+        n = builder.n_chunks(stage, inputs)
+        names = sorted(inputs or {})
+        for name in names:
+            with atomic_writer(self.folder / f"{gen}-{name}.npy") as f:
+                np.save(f, np.asarray(inputs[name]))
+        r.redis.set(r.key("stage"), json.dumps({"gen": gen, "stage": stage, "inputs": names}))
+        r.redis.rpush(r.key("todo"), *(f"{gen}:{i}" for i in range(n)))
+        if self.helpers is None:  # the first stage: helpers are asked for once the spec is whole
+            self.spec["params"] = builder.params.to_dict()
+            self._set_spec()
+            self.helpers = self.ask_helpers() if self.ask_helpers else 0
+        pending = set(range(n))
+        while pending:
+            # Results the helpers left
+            while (item := r.redis.lpop(r.key("done"))) is not None:
+                yield from self._finished(item.decode(), gen, pending)
+            # A chunk of our own
+            task = r.claim(self.holder)
+            if task is not None:
+                i = int(task.split(":")[1])
+                with r.leased(task, self.holder):
+                    result = builder.chunk(stage, i, inputs)
+                if i in pending:
+                    pending.discard(i)
+                    yield result
+                continue
+            # Every chunk is taken: put back those whose holder died, then wait for the others
+            for i in sorted(pending):
+                task = f"{gen}:{i}"
+                if not r.redis.exists(r.key(f"lease:{task}")) and r.redis.lpos(r.key("done"), task) is None:
+                    log.warning("chunk %s of run %s lost its worker: it is redone", task, r.run)
+                    self.redone += 1
+                    r.redis.rpush(r.key("todo"), task)
+            item = r.redis.blpop([r.key("done")], timeout=POLL_S)
+            if item is not None:
+                yield from self._finished(item[1].decode(), gen, pending)
+
+    def _finished(self, task: str, gen: int, pending: set):
+        g, i = (int(x) for x in task.split(":"))
+        path = self.folder / f"{g}-{i}.npz"
+        if g != gen or i not in pending:  # a chunk redone twice: its first result counted
+            path.unlink(missing_ok=True)
+            return
+        with np.load(path) as z:
+            result = tuple(z[f"a{k}"] for k in range(len(z.files)))
+        path.unlink()
+        pending.discard(i)
+        yield result
+
+
+def help_run(redis: Redis, run: str, make_builder, lease_s: float = LEASE_S) -> int:
+    """A helper's loop: takes the run's tasks until the run ends; returns the chunks it ran.
+
+    ``make_builder(spec)`` makes the :class:`~cloudgraph.graph.GraphBuilder` of a run's spec
+    (``scene``, ``quality``, ``params``: the coordinator's build parameters).
+    """
+    r, holder = _Run(redis, run, lease_s), holder_name()
+    builder, done = None, 0
+    while (raw := redis.get(r.key("spec"))) is not None:
+        task = r.claim(holder)
+        if task is None:
+            time.sleep(POLL_S)
+            continue
+        spec = json.loads(raw)
+        stage = json.loads(redis.get(r.key("stage")) or "{}")
+        gen, i = (int(x) for x in task.split(":"))
+        if stage.get("gen") != gen:  # a task of a stage already over (redone elsewhere)
+            redis.delete(r.key(f"lease:{task}"))
+            continue
+        folder = Path(spec["dir"])
+        with r.leased(task, holder):
+            builder = builder or make_builder(spec)
+            result = builder.chunk(stage["stage"], i, _inputs(folder, gen, stage["inputs"]))
+            if not folder.is_dir():  # the run ended while this chunk ran
+                break
+            with atomic_writer(folder / f"{gen}-{i}.npz") as f:
+                np.savez(f, **{f"a{k}": a for k, a in enumerate(result)})
+            redis.rpush(r.key("done"), task)
+        done += 1
+    return done
