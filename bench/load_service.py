@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from cloudgraph.bench import machine  # noqa: E402
-from tests.service import start_service  # noqa: E402
+from tests.harness import start_service  # noqa: E402
 
 
 def main() -> None:

@@ -68,8 +68,10 @@ MS_MAX_DTAU = 0.5
 MS_STRIDE = 4.0
 #: The gather stops where this much light is left, and adds the rest at the last G seen.
 MS_TR_MIN = 1e-2
-#: Multiple-scattering grid points per device batch (times MS_DIRECTIONS rays).
-MS_CHUNK = 1 << 16
+#: Multiple-scattering grid points per chunk (times MS_DIRECTIONS rays), and field points per
+#: chunk of the light march: chunks bound the device memory and may run on other workers.
+MS_CHUNK = 1 << 12
+TAU_CHUNK = 1 << 18
 #: Light march step, in field voxels (midpoint rule).
 TAU_STEP = 0.5
 #: Optical depth where the light march stops: exp(-16) ~ 1e-7 of the light is left.
@@ -181,32 +183,34 @@ def unit_points(shape) -> np.ndarray:
 
 
 def bake_field(
-    volume,
-    density_scale: float,
+    builder,
     graph,
     radiance_gather: np.ndarray,
     albedo,
     light_dir,
     irradiance,
-    node_radius: float,
     radiance_key: str = "",
+    chunks=None,
 ) -> tuple[RadianceField, dict]:
     """Bakes the field of a radiance cache (a variant must be set).
 
     Args:
-        volume: the :class:`~cloudgraph.volume.Volume`.
+        builder: the :class:`~cloudgraph.graph.GraphBuilder` of the graph (volume, medium, node
+            radius r, the Eq. 4.25 weight's floor).
         graph: the :class:`~cloudgraph.graph.Graph` (positions, search ranges, counts).
         radiance_gather: (N, 3) node radiance with one scattering event fewer (as ``gather``).
         albedo, irradiance: (3,); light_dir: (3,) direction the light travels.
-        node_radius: r, world units (the Eq. 4.25 weight's floor).
+        chunks: runs the marches' chunks (:func:`field_chunk`), as in ``build_graph``.
 
     Returns:
         (field, stats): stats hold the bake's seconds per part.
     """
+    from .graph import local_chunks
     from .integrators.graph import NodeGrid
 
+    volume, node_radius, medium = builder.volume, builder.params.radius, builder.field
+    chunks = chunks or local_chunks
     t_start = time.perf_counter()
-    medium = DensityField.from_volume(volume, density_scale)
     u2w = np.asarray(volume.unit_to_world, float)
     shape = field_shape(volume.shape)
     nx, ny, nz = shape
@@ -221,15 +225,16 @@ def bake_field(
     # Only points next to some density matter: trilinear interpolation at any point of the medium
     # reads 8 grid points, all within one voxel of a non-zero one. The rest stay zero.
     near = maximum_filter(sigma_t > 0, size=3, mode="constant").ravel()
-    p = to_world(units[near])
+    points = units[near] @ u2w[:3, :3].T + u2w[:3, 3]
 
     # Single scattering: optical depth to the light from every field point (Eq. 4.22 at a point,
     # deterministic). Step in world units: TAU_STEP of the smallest field voxel.
     t0 = time.perf_counter()
     voxel = float((np.linalg.norm(u2w[:3, :3], axis=0) / np.asarray(shape)).min())
     to_light = -np.asarray(light_dir, float) / np.linalg.norm(light_dir)
-    tau = _optical_depth(medium, p, mi.Vector3f(*(float(c) for c in to_light)), TAU_STEP * voxel)
-    tau_light = _scatter(near, np.array(tau, np.float32), (nz, ny, nx))
+    inputs = {"points": points.astype(np.float32), "to_light": to_light, "step": np.array([TAU_STEP * voxel])}
+    tau = _gathered(chunks(builder, "field_tau", inputs), len(points), 1)
+    tau_light = _scatter(near, tau[:, 0], (nz, ny, nx))
     t_tau = time.perf_counter() - t0
 
     # Multiple scattering, as ``gather`` computes it but on the grid: one more flight from the
@@ -240,11 +245,10 @@ def bake_field(
     # per point (a spherical Fibonacci set, turned at random per point) marched in closed form.
     t0 = time.perf_counter()
     grid = NodeGrid.build(graph.positions, graph.search_radius, radiance_gather * np.asarray(albedo)[None, :])
-    G = grid.lookup(p, (0.05 * node_radius) ** 2, mi.Bool(True))
+    G = grid.lookup(to_world(units[near]), (0.05 * node_radius) ** 2, mi.Bool(True))
     dr.eval(G)  # one kernel for the three channels
     G = np.stack([np.array(c, np.float32) for c in (G.x, G.y, G.z)], axis=1)
     G = _fill_empty(_scatter(near, G, (nz, ny, nx, 3)), near.reshape(nz, ny, nx))
-    G_tex = linear_texture(G)
     k = MS_COARSEN  # coarser still where the points to gather would be over MS_MAX_POINTS
     while True:
         ms_shape = tuple(-(-n // k) for n in shape)
@@ -253,11 +257,9 @@ def bake_field(
             break
         k += 1
     q = unit_points(ms_shape)[ms_near] @ u2w[:3, :3].T + u2w[:3, 3]
-    L_ms = [
-        _gather_ms(medium, G_tex, q[a : a + MS_CHUNK], MS_STEP * voxel, seed=a)
-        for a in range(0, len(q), MS_CHUNK)  # chunks bound the device memory, not a loop over points
-    ]
-    radiance_ms = _scatter(ms_near, np.concatenate(L_ms or [np.zeros((0, 3))]), (*ms_shape[::-1], 3))
+    inputs = {"points": q.astype(np.float32), "G": G, "step": np.array([MS_STEP * voxel])}
+    L_ms = _gathered(chunks(builder, "field_ms", inputs), len(q), 3)
+    radiance_ms = _scatter(ms_near, L_ms, (*ms_shape[::-1], 3))
     t_ms = time.perf_counter() - t0
 
     meta = {
@@ -283,6 +285,35 @@ def bake_field(
         "field_ms_points": int(ms_near.sum()),
     }
     return field, stats
+
+
+def field_chunk(medium: DensityField, stage: str, index: int, inputs: dict) -> tuple[np.ndarray, np.ndarray]:
+    """One chunk of the bake's marches, from its field points on (``points``, world units):
+    ``field_tau``, optical depth to the light (``to_light``); ``field_ms``, the multiple-
+    scattering gather through ``G``. Returns (first point, values): chunks may come back in any
+    order, from any worker (worker/chunks.py), and each gives the same values wherever it runs."""
+    size = TAU_CHUNK if stage == "field_tau" else MS_CHUNK
+    a, step = index * size, float(inputs["step"][0])
+    q = np.asarray(inputs["points"][a : a + size], np.float32)
+    if stage == "field_tau":
+        to_light = mi.Vector3f(*(float(c) for c in inputs["to_light"]))
+        tau = _optical_depth(medium, mi.Point3f(*(q[:, i] for i in range(3))), to_light, step)
+        values = np.array(tau, np.float32)[:, None]
+    else:
+        values = _gather_ms(medium, linear_texture(np.asarray(inputs["G"])), q, step, seed=a)
+    return np.array([a]), values
+
+
+def field_chunks(stage: str, inputs: dict) -> int:
+    return -(-len(inputs["points"]) // (TAU_CHUNK if stage == "field_tau" else MS_CHUNK))
+
+
+def _gathered(results, n: int, channels: int) -> np.ndarray:
+    """(n, channels) values from (first point, values) chunk results in any order."""
+    out = np.zeros((n, channels), np.float32)
+    for first, values in results:
+        out[int(first[0]) : int(first[0]) + len(values)] = values
+    return out
 
 
 def _scatter(mask: np.ndarray, values: np.ndarray, shape) -> np.ndarray:

@@ -359,11 +359,13 @@ class NodeTable:
         fixed = np.round((points - self.origin) / self.unit)
         for i in range(3):
             self.sum[:, i] += np.bincount(node, fixed[:, i], n).astype(np.int64)
-        # The kept sample of each node touched: its MEMBERS_KEPT lowest priorities so far
-        touched = np.unique(node)
-        cand_node = np.concatenate([np.repeat(touched, MEMBERS_KEPT), node])
-        cand_pri = np.concatenate([self.priority[touched].ravel(), priority])
-        cand_pts = np.concatenate([self.kept[touched].reshape(-1, 3), points.astype(np.float32)])
+        # The kept sample of each node touched: its MEMBERS_KEPT lowest priorities so far. Kept
+        # priorities are in ascending order, so a collision above a node's last cannot enter.
+        enter = priority < self.priority[node, -1]
+        touched = np.unique(node[enter])
+        cand_node = np.concatenate([np.repeat(touched, MEMBERS_KEPT), node[enter]])
+        cand_pri = np.concatenate([self.priority[touched].ravel(), priority[enter]])
+        cand_pts = np.concatenate([self.kept[touched].reshape(-1, 3), points[enter].astype(np.float32)])
         order = np.lexsort((cand_pri, cand_node))
         starts = np.flatnonzero(np.diff(cand_node[order], prepend=-1))
         rank = np.arange(len(order)) - np.repeat(starts, np.diff(np.append(starts, len(order))))
@@ -387,7 +389,8 @@ class GraphBuilder:
 
     Stages: ``trace``, light paths from index * CHUNK_PATHS on; ``flights``, reinforcement
     flights from index * CHUNK_FLIGHTS on of one round, with inputs ``starts`` (M, 3) float32
-    start points, ``who`` (M,) int64 cell keys of their nodes and ``round`` (1,).
+    start points, ``who`` (M,) int64 cell keys of their nodes and ``round`` (1,); and the field
+    bake's marches (``field_tau``, ``field_ms``), which walk the same medium.
     """
 
     def __init__(self, volume: Volume, density_scale: float, params: BuildParams):
@@ -398,15 +401,24 @@ class GraphBuilder:
     def n_chunks(self, stage: str, inputs: dict | None = None) -> int:
         if stage == "trace":
             return -(-self.params.n_paths // CHUNK_PATHS)
-        return -(-len(inputs["who"]) // CHUNK_FLIGHTS)
+        if stage == "flights":
+            return -(-len(inputs["who"]) // CHUNK_FLIGHTS)
+        from .field import field_chunks
+
+        return field_chunks(stage, inputs)
 
     def chunk(self, stage: str, index: int, inputs: dict | None = None) -> tuple[np.ndarray, ...]:
-        """One chunk's collisions and samples, as :meth:`NodeTable.merge` takes them."""
+        """One chunk's results: collisions and samples as :meth:`NodeTable.merge` takes them, or
+        the field bake's (``field_tau``, ``field_ms``: :func:`~cloudgraph.field.field_chunk`)."""
         if stage == "trace":
             return self._trace(index * CHUNK_PATHS)
         if stage == "flights":
             return self._flights(index * CHUNK_FLIGHTS, inputs)
-        raise ValueError(f"unknown build stage {stage!r}")
+        if stage in ("field_tau", "field_ms"):
+            from .field import field_chunk
+
+            return field_chunk(self.field, stage, index, inputs)
+        raise ValueError(f"unknown precompute stage {stage!r}")
 
     def _trace(self, first: int) -> tuple[np.ndarray, ...]:
         # Light paths (§4.3): every collision joins the node of its cell (§4.3.1) and has an
@@ -449,17 +461,23 @@ def local_chunks(builder: GraphBuilder, stage: str, inputs: dict | None = None):
 
 
 def build_graph(
-    volume: Volume, density_scale: float, params: BuildParams, progress=None, chunks=local_chunks
+    volume: Volume,
+    density_scale: float,
+    params: BuildParams,
+    progress=None,
+    chunks=local_chunks,
+    builder: GraphBuilder | None = None,
 ) -> Graph:
     """Builds the graph of a volume and density scale (a variant must be set).
 
     ``progress(stage, fraction)`` is called as the build goes. ``chunks(builder, stage, inputs)``
     runs a stage's chunks (:meth:`GraphBuilder.chunk`) and yields their results in any order:
-    here by default, or spread over workers; the graph is the same bytes either way.
+    here by default, or spread over workers; the graph is the same bytes either way. ``builder``:
+    one already made for these arguments.
     """
     progress = progress or (lambda stage, fraction: None)
     t_start = time.perf_counter()
-    builder = GraphBuilder(volume, density_scale, params)
+    builder = builder or GraphBuilder(volume, density_scale, params)
     origin = builder.origin
     table = NodeTable(origin, params.radius)
 

@@ -17,10 +17,9 @@ import numpy as np
 from .cache import CacheStore, graph_key, radiance_key, volume_id
 from .errors import CacheError
 from .field import RadianceField, bake_field
-from .graph import BuildParams, Graph, build_graph, build_params, local_chunks
+from .graph import BuildParams, Graph, GraphBuilder, build_graph, build_params, local_chunks
 from .lighting import direct_radiance
 from .scene import Scene
-from .tracing import DensityField
 from .transport import transport
 from .volume import Volume
 
@@ -106,8 +105,8 @@ def precompute(
 ) -> RadianceCache:
     """Finds or builds the radiance cache for the scene's (volume, medium, light, depth).
 
-    ``progress(stage, fraction)`` is called as it goes; ``chunks`` runs the graph build's chunks
-    (:func:`~cloudgraph.graph.build_graph`: here, or over workers). A variant must be set.
+    ``progress(stage, fraction)`` is called as it goes; ``chunks`` runs the chunks of the graph build and
+    the field bake (:class:`~cloudgraph.graph.GraphBuilder`: here, or over workers). A variant must be set.
     """
     store = store or CacheStore()
     progress = progress or (lambda stage, fraction: None)
@@ -118,23 +117,23 @@ def precompute(
 
     found = store.load_radiance(rkey)
     found_field = store.load_field(rkey)
-    graph, graph_reused = None, True
+    graph, graph_reused, builder = None, True, None
     if found is None or found_field is None:  # the graph is needed: read it, or build it
+        builder = GraphBuilder(volume, scene.medium.density_scale, params)
         graph = store.load_graph(gkey)
         graph_reused = graph is not None
         if graph is None:
             graph = build_graph(
-                volume, scene.medium.density_scale, params, lambda s, f: progress(s, 0.7 * f), chunks
+                volume, scene.medium.density_scale, params, lambda s, f: progress(s, 0.7 * f), chunks, builder
             )
             store.save_graph(gkey, graph)
     if found is not None:
         (radiance, radiance_gather), rstats = found
     else:
-        field = DensityField.from_volume(volume, scene.medium.density_scale)
         progress("lighting", 0.7)
         t0 = time.perf_counter()
         L_d = direct_radiance(
-            field,
+            builder.field,
             graph.positions,
             light_dir,
             scene.light.irradiance_rgb(),
@@ -168,15 +167,14 @@ def precompute(
     else:
         progress("field", 0.95)
         field, fstats = bake_field(
-            volume,
-            scene.medium.density_scale,
+            builder,
             graph,
             radiance_gather,
             scene.medium.albedo_rgb(),
             light_dir,
             scene.light.irradiance_rgb(),
-            params.radius,
             rkey,
+            chunks,
         )
         data = field.encode()
         store.save_field(rkey, data)

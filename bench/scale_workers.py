@@ -1,0 +1,78 @@
+"""Scale benchmark of one precompute over several workers (README, "Scale"): the same cache
+built through the service by 1 and by N workers of one Dr.Jit thread each, each in a fresh
+service (kernels compiled in every run alike), and whether the cache files are the same bytes.
+
+    .venv/bin/python bench/scale_workers.py [--volume ../shared/data/smoke1.vdb] [--workers 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from cloudgraph.bench import machine  # noqa: E402
+from tests.harness import job_of, start_service, wait_job  # noqa: E402
+
+
+def precompute_through(workers: int, volume: Path, quality: str, data: Path) -> tuple[float, dict]:
+    """(seconds from POST to finished, {file: bytes}) of one precompute on a fresh service."""
+    shutil.rmtree(data, ignore_errors=True)
+    svc = start_service(data, workers=workers, WORKER_THREADS=1)
+    try:
+        with svc.client() as c:
+            with open(volume, "rb") as f:
+                info = c.post("/v1/volumes", files={"file": (volume.name, f)}).json()
+            body = {
+                "volume": {"id": info["id"]},
+                "medium": {"density_scale": 1.0 / (info["value_range"][1] * max(info["voxel_size"]))},
+                "light": {"direction": [0.55, -0.25, -0.8]},
+                "quality": quality,
+            }
+            t0 = time.perf_counter()
+            r = c.post("/v1/caches", json=body)
+            assert wait_job(c, job_of(r), timeout=3600)["status"] == "finished"
+            seconds = time.perf_counter() - t0
+        files = {
+            str(p.relative_to(data / "cache")): p.read_bytes()
+            for p in (data / "cache").rglob("*")
+            if p.is_file() and p.parts[-3:-2] != ("runs",)
+        }
+        return seconds, files
+    finally:
+        svc.stop()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--volume", default=str(ROOT.parent / "shared" / "data" / "smoke1.vdb"))
+    ap.add_argument("--quality", default="default")
+    ap.add_argument("--workers", type=int, default=2)
+    args = ap.parse_args()
+    volume = Path(args.volume)
+    one_s, one = precompute_through(1, volume, args.quality, Path("/tmp/cloudgraph-scale-1"))
+    n_s, many = precompute_through(args.workers, volume, args.quality, Path("/tmp/cloudgraph-scale-n"))
+    result = {
+        "machine": machine(),
+        "volume": volume.name,
+        "quality": args.quality,
+        "worker_threads": 1,
+        "one_worker_s": round(one_s, 2),
+        f"{args.workers}_workers_s": round(n_s, 2),
+        "speedup": round(one_s / n_s, 2),
+        "same_bytes": one == many,
+        "files": sorted(one),
+    }
+    print(json.dumps(result, indent=2))
+    out = ROOT / "bench" / "results" / f"scale-workers-{time.strftime('%Y%m%d-%H%M%S')}.json"
+    out.write_text(json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()
