@@ -21,8 +21,9 @@ from cloudgraph.bench import machine  # noqa: E402
 from tests.harness import job_of, start_service, wait_job  # noqa: E402
 
 
-def precompute_through(workers: int, volume: Path, quality: str, data: Path) -> tuple[float, dict]:
-    """(seconds from POST to finished, {file: bytes}) of one precompute on a fresh service."""
+def precompute_through(workers: int, volume: Path, quality: str, data: Path) -> tuple[float, dict, dict]:
+    """(seconds from POST to finished, {file: bytes}, stage times) of one precompute on a fresh
+    service."""
     shutil.rmtree(data, ignore_errors=True)
     svc = start_service(data, workers=workers, WORKER_THREADS=1)
     try:
@@ -39,12 +40,13 @@ def precompute_through(workers: int, volume: Path, quality: str, data: Path) -> 
             r = c.post("/v1/caches", json=body)
             assert wait_job(c, job_of(r), timeout=3600)["status"] == "finished"
             seconds = time.perf_counter() - t0
+            stats = c.get(f"/v1/caches/{r.json()['id']}").json()["stats"]
         files = {
             str(p.relative_to(data / "cache")): p.read_bytes()
             for p in (data / "cache").rglob("*")
             if p.is_file() and p.parts[-3:-2] != ("runs",)
         }
-        return seconds, files
+        return seconds, files, {k: v for k, v in stats.items() if k.endswith("_s")}
     finally:
         svc.stop()
 
@@ -56,8 +58,10 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args()
     volume = Path(args.volume)
-    one_s, one = precompute_through(1, volume, args.quality, Path("/tmp/cloudgraph-scale-1"))
-    n_s, many = precompute_through(args.workers, volume, args.quality, Path("/tmp/cloudgraph-scale-n"))
+    one_s, one, one_times = precompute_through(1, volume, args.quality, Path("/tmp/cloudgraph-scale-1"))
+    n_s, many, n_times = precompute_through(
+        args.workers, volume, args.quality, Path("/tmp/cloudgraph-scale-n")
+    )
     result = {
         "machine": machine(),
         "volume": volume.name,
@@ -67,6 +71,8 @@ def main() -> None:
         f"{args.workers}_workers_s": round(n_s, 2),
         "speedup": round(one_s / n_s, 2),
         "same_bytes": one == many,
+        "one_worker_stages": one_times,
+        f"{args.workers}_workers_stages": n_times,
         "files": sorted(one),
     }
     print(json.dumps(result, indent=2))

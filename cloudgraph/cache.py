@@ -14,6 +14,7 @@ however many workers built it.
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
 import tempfile
@@ -183,15 +184,16 @@ def atomic_writer(path: Path):
 
 def _atomic_save(path: Path, kind: str, compress: bool = False, **arrays) -> Path:
     """An .npz as ``np.savez`` writes it, but with fixed timestamps: the same arrays give the same
-    bytes, whichever worker wrote them and when."""
+    bytes, whichever worker wrote them and when. Compressed at zlib level 1: on smoke1's graph
+    2 % larger than level 6 in a quarter of the time (0.4 s against 1.6 s)."""
     arrays = {"format_version": ENGINE_FORMAT_VERSION, "kind": kind, **arrays}
     method = zipfile.ZIP_DEFLATED if compress else zipfile.ZIP_STORED
-    with atomic_writer(path) as f, zipfile.ZipFile(f, "w", method) as z:
+    with atomic_writer(path) as f, zipfile.ZipFile(f, "w", method, allowZip64=True) as z:
         for name, a in arrays.items():
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, np.asanyarray(a), allow_pickle=False)
             info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-            info.compress_type = method
-            with z.open(info, "w", force_zip64=True) as out:
-                np.lib.format.write_array(out, np.asanyarray(a), allow_pickle=False)
+            z.writestr(info, buf.getbuffer(), compress_type=method, compresslevel=1)
     return path
 
 

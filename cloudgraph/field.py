@@ -205,7 +205,7 @@ def bake_field(
     Returns:
         (field, stats): stats hold the bake's seconds per part.
     """
-    from .graph import local_chunks
+    from .graph import local_chunks, placed
     from .integrators.graph import NodeGrid
 
     volume, node_radius, medium = builder.volume, builder.params.radius, builder.field
@@ -233,7 +233,7 @@ def bake_field(
     voxel = float((np.linalg.norm(u2w[:3, :3], axis=0) / np.asarray(shape)).min())
     to_light = -np.asarray(light_dir, float) / np.linalg.norm(light_dir)
     inputs = {"points": points.astype(np.float32), "to_light": to_light, "step": np.array([TAU_STEP * voxel])}
-    tau = _gathered(chunks(builder, "field_tau", inputs), len(points), 1)
+    tau = placed(chunks(builder, "field_tau", inputs), len(points), 1)
     tau_light = _scatter(near, tau[:, 0], (nz, ny, nx))
     t_tau = time.perf_counter() - t0
 
@@ -258,7 +258,7 @@ def bake_field(
         k += 1
     q = unit_points(ms_shape)[ms_near] @ u2w[:3, :3].T + u2w[:3, 3]
     inputs = {"points": q.astype(np.float32), "G": G, "step": np.array([MS_STEP * voxel])}
-    L_ms = _gathered(chunks(builder, "field_ms", inputs), len(q), 3)
+    L_ms = placed(chunks(builder, "field_ms", inputs), len(q), 3)
     radiance_ms = _scatter(ms_near, L_ms, (*ms_shape[::-1], 3))
     t_ms = time.perf_counter() - t0
 
@@ -306,14 +306,6 @@ def field_chunk(medium: DensityField, stage: str, index: int, inputs: dict) -> t
 
 def field_chunks(stage: str, inputs: dict) -> int:
     return -(-len(inputs["points"]) // (TAU_CHUNK if stage == "field_tau" else MS_CHUNK))
-
-
-def _gathered(results, n: int, channels: int) -> np.ndarray:
-    """(n, channels) values from (first point, values) chunk results in any order."""
-    out = np.zeros((n, channels), np.float32)
-    for first, values in results:
-        out[int(first[0]) : int(first[0]) + len(values)] = values
-    return out
 
 
 def _scatter(mask: np.ndarray, values: np.ndarray, shape) -> np.ndarray:

@@ -254,8 +254,8 @@ def density_points(volume: Volume, n: int, seed: int) -> np.ndarray:
     if n <= 0:
         return np.zeros((0, 3))
     rng = np.random.default_rng(seed + 7919)
-    flat = volume.density.ravel().astype(np.float64)
-    voxel = rng.choice(flat.size, size=n, p=flat / flat.sum())
+    cdf = np.cumsum(volume.density.ravel(), dtype=np.float64)
+    voxel = np.searchsorted(cdf, rng.random(n) * cdf[-1], side="right")  # inverse CDF (as choice, faster)
     ijk = np.stack(np.unravel_index(voxel, volume.shape), axis=1) + rng.random((n, 3)) - 0.5
     index = ijk + np.asarray(volume.index_min)
     return index @ volume.index_to_world[:3, :3].T + volume.index_to_world[:3, 3]
@@ -350,34 +350,71 @@ class NodeTable:
             self.counts.resize((n + m, n + m))
         return self.order[np.searchsorted(self.sorted_keys, keys)]
 
-    def merge(self, keys, points, priority, src, dst) -> None:
-        """Adds collisions ((M,) cell keys, (M, 3) points, (M,) priorities in [0, 1)) and
-        outgoing samples ((S,) cell keys of their start, (S,) of their collision or -1: escaped)."""
+    def merge(self, part: tuple[np.ndarray, ...]) -> None:
+        """Adds a chunk's :func:`reduce_chunk` (per cell: collisions, their fixed-point sum and
+        lowest priorities; outgoing samples per start cell; edge counts)."""
+        keys, count, sums, kept_keys, kept_points, kept_priority, src, src_count, e_src, e_dst, e_count = part
         node = self.index(keys)
-        n = len(self)
-        self.count += np.bincount(node, minlength=n)
-        fixed = np.round((points - self.origin) / self.unit)
-        for i in range(3):
-            self.sum[:, i] += np.bincount(node, fixed[:, i], n).astype(np.int64)
+        self.count[node] += count
+        self.sum[node] += sums
         # The kept sample of each node touched: its MEMBERS_KEPT lowest priorities so far. Kept
         # priorities are in ascending order, so a collision above a node's last cannot enter.
-        enter = priority < self.priority[node, -1]
-        touched = np.unique(node[enter])
-        cand_node = np.concatenate([np.repeat(touched, MEMBERS_KEPT), node[enter]])
-        cand_pri = np.concatenate([self.priority[touched].ravel(), priority[enter]])
-        cand_pts = np.concatenate([self.kept[touched].reshape(-1, 3), points[enter].astype(np.float32)])
-        order = np.lexsort((cand_pri, cand_node))
-        starts = np.flatnonzero(np.diff(cand_node[order], prepend=-1))
-        rank = np.arange(len(order)) - np.repeat(starts, np.diff(np.append(starts, len(order))))
-        keep = order[rank < MEMBERS_KEPT]
-        self.priority[cand_node[keep], rank[rank < MEMBERS_KEPT]] = cand_pri[keep]
-        self.kept[cand_node[keep], rank[rank < MEMBERS_KEPT]] = cand_pts[keep]
+        cand = self.index(kept_keys)
+        enter = kept_priority < self.priority[cand, -1]
+        touched = np.unique(cand[enter])
+        cand_node = np.concatenate([np.repeat(touched, MEMBERS_KEPT), cand[enter]])
+        cand_pri = np.concatenate([self.priority[touched].ravel(), kept_priority[enter]])
+        cand_pts = np.concatenate([self.kept[touched].reshape(-1, 3), kept_points[enter]])
+        keep, rank = _lowest(cand_node, cand_pri)
+        self.priority[cand_node[keep], rank] = cand_pri[keep]
+        self.kept[cand_node[keep], rank] = cand_pts[keep]
         # Samples and edge counts
-        s = self.index(src)
-        self.out += np.bincount(s, minlength=n)
-        hit = dst >= 0
-        ones = np.ones(int(hit.sum()), np.int64)
-        self.counts = self.counts + sp.csr_matrix((ones, (s[hit], self.index(dst[hit]))), shape=(n, n))
+        self.out[self.index(src)] += src_count
+        n = len(self)
+        self.counts = self.counts + sp.csr_matrix(
+            (e_count, (self.index(e_src), self.index(e_dst))), shape=(n, n)
+        )
+
+
+def _lowest(group: np.ndarray, priority: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The entries of the MEMBERS_KEPT lowest priorities of each group, and their ranks in it."""
+    order = np.lexsort((priority, group))
+    starts = np.flatnonzero(np.diff(group[order], prepend=-1))
+    rank = np.arange(len(order)) - np.repeat(starts, np.diff(np.append(starts, len(order))))
+    low = rank < MEMBERS_KEPT
+    return order[low], rank[low]
+
+
+def reduce_chunk(keys, points, priority, src, dst, origin, radius) -> tuple[np.ndarray, ...]:
+    """A chunk's collisions ((M,) cell keys, (M, 3) world points, (M,) priorities in [0, 1)) and
+    outgoing samples ((S,) cell keys of their start, (S,) of their collision or -1: escaped),
+    reduced per cell and per edge where they were traced, so that what is sent and merged grows
+    with the cells a chunk touches, not with its samples. Merging the reductions gives the table
+    that merging the samples would (sums of integers, lowest priorities)."""
+    cells, inv, count = np.unique(keys, return_inverse=True, return_counts=True)
+    fixed = np.round((points - origin) / (radius / FIXED_POINT))
+    sums = np.stack([np.bincount(inv, fixed[:, i], len(cells)) for i in range(3)], axis=1).astype(np.int64)
+    keep, _ = _lowest(inv, priority)
+    src_cells, src_count = np.unique(src, return_counts=True)
+    hit = dst >= 0
+    a, b = src[hit], dst[hit]
+    order = np.lexsort((b, a))
+    a, b = a[order], b[order]
+    first = np.flatnonzero(np.r_[True, (a[1:] != a[:-1]) | (b[1:] != b[:-1])]) if len(a) else np.zeros(0, int)
+    e_count = np.diff(np.append(first, len(a)))
+    return (
+        cells,
+        count.astype(np.int64),
+        sums,
+        keys[keep],
+        points[keep].astype(np.float32),
+        priority[keep],
+        src_cells,
+        src_count.astype(np.int64),
+        a[first],
+        b[first],
+        e_count.astype(np.int64),
+    )
 
 
 class GraphBuilder:
@@ -388,9 +425,11 @@ class GraphBuilder:
     graph, since a :class:`NodeTable` is the same whatever the order of its merges.
 
     Stages: ``trace``, light paths from index * CHUNK_PATHS on; ``flights``, reinforcement
-    flights from index * CHUNK_FLIGHTS on of one round, with inputs ``starts`` (M, 3) float32
-    start points, ``who`` (M,) int64 cell keys of their nodes and ``round`` (1,); and the field
-    bake's marches (``field_tau``, ``field_ms``), which walk the same medium.
+    flights from index * CHUNK_FLIGHTS on of one round, with inputs per node short of samples
+    (``cells`` keys, ``ends`` running total of flights, ``kept`` collisions and how many
+    ``members``) and the ``round``: a few bytes per node, not per flight; and the later
+    stages that walk the same medium: the direct lighting of the nodes (``lighting``) and the
+    field bake's marches (``field_tau``, ``field_ms``).
     """
 
     def __init__(self, volume: Volume, density_scale: float, params: BuildParams):
@@ -402,18 +441,26 @@ class GraphBuilder:
         if stage == "trace":
             return -(-self.params.n_paths // CHUNK_PATHS)
         if stage == "flights":
-            return -(-len(inputs["who"]) // CHUNK_FLIGHTS)
+            return -(-int(inputs["ends"][-1]) // CHUNK_FLIGHTS)
+        if stage == "lighting":
+            from .lighting import LIGHTING_CHUNK
+
+            return -(-len(inputs["positions"]) // LIGHTING_CHUNK)
         from .field import field_chunks
 
         return field_chunks(stage, inputs)
 
     def chunk(self, stage: str, index: int, inputs: dict | None = None) -> tuple[np.ndarray, ...]:
-        """One chunk's results: collisions and samples as :meth:`NodeTable.merge` takes them, or
+        """One chunk's results: collisions and samples reduced (:func:`reduce_chunk`), or
         the field bake's (``field_tau``, ``field_ms``: :func:`~cloudgraph.field.field_chunk`)."""
         if stage == "trace":
             return self._trace(index * CHUNK_PATHS)
         if stage == "flights":
             return self._flights(index * CHUNK_FLIGHTS, inputs)
+        if stage == "lighting":
+            from .lighting import lighting_chunk
+
+            return lighting_chunk(self.field, index, inputs)
         if stage in ("field_tau", "field_ms"):
             from .field import field_chunk
 
@@ -439,25 +486,43 @@ class GraphBuilder:
         succ = np.concatenate([keys[:, 1:], np.full((n, 1), -1, np.int64)], axis=1)
         has_out = has_next | escaped
         priority = uniform_hash(p.seed, 0, ((first + np.arange(n))[:, None] * p.max_collisions + k)[valid])
-        return keys[valid], points, priority, keys[has_out], np.where(has_next, succ, -1)[has_out]
+        src, dst = keys[has_out], np.where(has_next, succ, -1)[has_out]
+        return reduce_chunk(keys[valid], points, priority, src, dst, self.origin, p.radius)
 
     def _flights(self, a: int, inputs: dict) -> tuple[np.ndarray, ...]:
-        # Each flight is a sample of its node; where it collides is a collision too
+        # Flights a .. a + CHUNK_FLIGHTS - 1 of the round: flight f belongs to the first node
+        # whose running total of flights (``ends``) exceeds f, and starts at one of its kept
+        # collisions picked by f's own random number. Each flight is a sample of its node;
+        # where it collides is a collision too.
         p, rnd = self.params, int(inputs["round"][0])
-        starts = np.asarray(inputs["starts"][a : a + CHUNK_FLIGHTS], np.float64)
+        ends = np.asarray(inputs["ends"])
+        f = np.arange(a, min(a + CHUNK_FLIGHTS, int(ends[-1])))
+        node = np.searchsorted(ends, f, side="right")
+        members = np.asarray(inputs["members"])[node]
+        pick = np.floor(uniform_hash(p.seed, 1000 + rnd, f) * members).astype(np.int64)
+        starts = np.asarray(inputs["kept"])[node, pick].astype(np.float64)
         hits, collided = trace_flights(self.field, starts, p.seed + 1 + rnd, a)
         hits = hits[collided].astype(np.float64)
         hit_keys = node_cells(hits, p.radius, self.origin)
         dst = np.full(len(collided), -1, np.int64)
         dst[collided] = hit_keys
         priority = uniform_hash(p.seed, 2 + rnd, a + np.flatnonzero(collided))
-        return hit_keys, hits, priority, np.asarray(inputs["who"][a : a + CHUNK_FLIGHTS]), dst
+        src = np.asarray(inputs["cells"])[node]
+        return reduce_chunk(hit_keys, hits, priority, src, dst, self.origin, p.radius)
 
 
 def local_chunks(builder: GraphBuilder, stage: str, inputs: dict | None = None):
     """Runs a stage's chunks one after another in this process (the default ``chunks``)."""
     for i in range(builder.n_chunks(stage, inputs)):
         yield builder.chunk(stage, i, inputs)
+
+
+def placed(results, n: int, channels: int, dtype=np.float32) -> np.ndarray:
+    """(n, channels) values from chunk results (first row, values) that come in any order."""
+    out = np.zeros((n, channels), dtype)
+    for first, values in results:
+        out[int(first[0]) : int(first[0]) + len(values)] = values
+    return out
 
 
 def build_graph(
@@ -484,7 +549,7 @@ def build_graph(
     # Light paths (§4.3), chunk by chunk, each reduced into the table and dropped
     n = builder.n_chunks("trace")
     for i, result in enumerate(chunks(builder, "trace")):
-        table.merge(*result)
+        table.merge(result)
         progress("trace", 0.3 * (i + 1) / n)
     # Coverage seeds (our addition): light paths are cut at max_collisions, so in thick media
     # they never reach the far side. Points drawn in proportion to density seed nodes there too;
@@ -492,26 +557,35 @@ def build_graph(
     seeds = density_points(volume, params.coverage_seeds, params.seed)
     none = np.zeros(0, np.int64)
     priority = uniform_hash(params.seed, 1, np.arange(len(seeds)))
-    table.merge(node_cells(seeds, params.radius, origin), seeds, priority, none, none)
+    table.merge(
+        reduce_chunk(
+            node_cells(seeds, params.radius, origin), seeds, priority, none, none, origin, params.radius
+        )
+    )
     t_trace = time.perf_counter() - t_start
 
     # Reinforcement of sparse nodes (§4.3, App. B)
     t0 = time.perf_counter()
-    rng = np.random.default_rng(params.seed)
     for rnd in range(params.reinforce_rounds):
         n_edges = np.diff(table.counts.indptr)
         deficit = np.maximum(params.min_out_samples - table.out, 0)
         deficit[(n_edges < params.min_out_edges) & (deficit == 0)] = params.min_out_samples
         if not deficit.any():
             break
-        # Each new flight starts at a random kept collision of its node. Collisions in cells
+        # The nodes short of samples, in order of keys, with their kept collisions: each new
+        # flight starts at a random one of them (GraphBuilder._flights). Collisions in cells
         # without a node make new nodes (filled in the next round).
-        who = np.repeat(table.order, deficit[table.order])  # in order of keys
-        pick = np.floor(rng.random(len(who)) * np.minimum(table.count[who], MEMBERS_KEPT)).astype(np.int64)
-        inputs = {"starts": table.kept[who, pick], "who": table.keys[who], "round": np.array([rnd])}
+        short = table.order[deficit[table.order] > 0]
+        inputs = {
+            "cells": table.keys[short],
+            "ends": np.cumsum(deficit[short]),
+            "kept": table.kept[short],
+            "members": np.minimum(table.count[short], MEMBERS_KEPT),
+            "round": np.array([rnd]),
+        }
         n = builder.n_chunks("flights", inputs)
         for i, result in enumerate(chunks(builder, "flights", inputs)):
-            table.merge(*result)
+            table.merge(result)
             progress("reinforce", 0.3 + 0.7 * (rnd + (i + 1) / n) / params.reinforce_rounds)
     t_reinforce = time.perf_counter() - t0
 

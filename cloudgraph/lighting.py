@@ -21,6 +21,9 @@ import numpy as np
 
 from .tracing import DensityField, ratio_tracking
 
+#: Nodes per chunk of the direct lighting (chunks may run on other workers, worker/chunks.py).
+LIGHTING_CHUNK = 1 << 15
+
 
 def direct_radiance(
     field: DensityField,
@@ -29,6 +32,7 @@ def direct_radiance(
     irradiance,
     samples: int = 16,
     seed: int = 0,
+    first: int = 0,
 ) -> np.ndarray:
     """In-scattered direct radiance at each node (Eq. 4.22).
 
@@ -37,6 +41,8 @@ def direct_radiance(
         light_dir: (3,) direction the light travels.
         irradiance: scalar or (3,) irradiance of the directional light.
         samples: ratio-tracking estimates of T_r per node.
+        first: the index of the first node: node i's estimates are the same whichever range
+            of nodes it is computed in.
 
     Returns:
         (N, 3) float64 radiance per node, phase function (1/4pi) included.
@@ -44,8 +50,8 @@ def direct_radiance(
     n = len(positions)
     if n == 0:
         return np.zeros((0, 3))
-    m = n * samples
-    rng = mi.PCG32(m, initstate=seed, initseq=dr.arange(mi.UInt64, m))
+    m, lane = n * samples, first * samples
+    rng = mi.PCG32(m, initstate=seed + lane, initseq=lane)  # lane j: first * samples + j added to both
     node = dr.arange(mi.UInt32, m) // samples
     o = dr.gather(mi.Point3f, mi.Point3f(*(positions[:, i].astype(np.float32) for i in range(3))), node)
     to_light = -np.asarray(light_dir, float) / np.linalg.norm(light_dir)
@@ -54,3 +60,19 @@ def direct_radiance(
     transmittance = np.array(Tr, np.float64).reshape(n, samples).mean(axis=1)
     e = np.broadcast_to(np.asarray(irradiance, float), (3,))
     return transmittance[:, None] * e[None, :] / (4.0 * np.pi)  # Eq. 4.22
+
+
+def lighting_chunk(field: DensityField, index: int, inputs: dict) -> tuple[np.ndarray, np.ndarray]:
+    """(first node, L_d) of one chunk of nodes: inputs ``positions``, ``light_dir``,
+    ``irradiance``, ``samples`` and ``seed``, as :func:`direct_radiance` takes them."""
+    a = index * LIGHTING_CHUNK
+    L_d = direct_radiance(
+        field,
+        np.asarray(inputs["positions"][a : a + LIGHTING_CHUNK]),
+        np.asarray(inputs["light_dir"]),
+        np.asarray(inputs["irradiance"]),
+        int(inputs["samples"][0]),
+        int(inputs["seed"][0]),
+        a,
+    )
+    return np.array([a]), L_d

@@ -17,8 +17,7 @@ import numpy as np
 from .cache import CacheStore, graph_key, radiance_key, volume_id
 from .errors import CacheError
 from .field import RadianceField, bake_field
-from .graph import BuildParams, Graph, GraphBuilder, build_graph, build_params, local_chunks
-from .lighting import direct_radiance
+from .graph import BuildParams, Graph, GraphBuilder, build_graph, build_params, local_chunks, placed
 from .scene import Scene
 from .transport import transport
 from .volume import Volume
@@ -132,14 +131,14 @@ def precompute(
     else:
         progress("lighting", 0.7)
         t0 = time.perf_counter()
-        L_d = direct_radiance(
-            builder.field,
-            graph.positions,
-            light_dir,
-            scene.light.irradiance_rgb(),
-            LIGHTING["samples"],
-            seed=params.seed,
-        )
+        inputs = {
+            "positions": graph.positions,
+            "light_dir": light_dir,
+            "irradiance": np.asarray(scene.light.irradiance_rgb(), float),
+            "samples": np.array([LIGHTING["samples"]]),
+            "seed": np.array([params.seed]),
+        }
+        L_d = placed(chunks(builder, "lighting", inputs), graph.n_nodes, 3, np.float64)
         t_light = time.perf_counter() - t0
         progress("transport", 0.85)
         t0 = time.perf_counter()

@@ -37,8 +37,6 @@ from pathlib import Path
 import numpy as np
 from redis import Redis
 
-from cloudgraph.cache import atomic_writer
-
 log = logging.getLogger("cloudgraph.chunks")
 
 #: A claimed task goes back on the list when its holder has not renewed its lease for this long.
@@ -100,6 +98,15 @@ class _Run:
             self.redis.delete(self.key(f"lease:{task}"))
 
 
+def _write(path: Path, save, *args, **kwargs) -> None:
+    """``save(file, *args, **kwargs)`` under a temporary name, then renamed: whole when its task
+    is announced. Not synced to disk: a run's files live only as long as the run."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "wb") as f:
+        save(f, *args, **kwargs)
+    os.replace(tmp, path)
+
+
 def _inputs(folder: Path, gen: int, names: list[str]) -> dict:
     return {name: np.load(folder / f"{gen}-{name}.npy", mmap_mode="r") for name in names}
 
@@ -125,7 +132,7 @@ class SharedChunks:
         self.spec = {**spec, "dir": str(folder)}
         self.folder, self.ask_helpers = Path(folder), ask_helpers
         self.holder = holder_name()
-        self.gen, self.helpers, self.redone = 0, None, 0
+        self.gen, self.helpers, self.redone, self.here = 0, None, 0, {}
         self._stop = threading.Event()
         self._beat = threading.Thread(target=self._renew_spec, daemon=True)
 
@@ -140,6 +147,7 @@ class SharedChunks:
         return self
 
     def __exit__(self, *exc) -> None:
+        log.info("run %s: chunks run here per stage %s, redone %d", self.r.run, self.here, self.redone)
         self._stop.set()
         self._beat.join()
         r = self.r.redis
@@ -164,8 +172,7 @@ class SharedChunks:
         n = builder.n_chunks(stage, inputs)
         names = sorted(inputs or {})
         for name in names:
-            with atomic_writer(self.folder / f"{gen}-{name}.npy") as f:
-                np.save(f, np.asarray(inputs[name]))
+            _write(self.folder / f"{gen}-{name}.npy", np.save, np.asarray(inputs[name]))
         r.redis.set(r.key("stage"), json.dumps({"gen": gen, "stage": stage, "inputs": names}))
         r.redis.rpush(r.key("todo"), *(f"{gen}:{i}" for i in range(n)))
         if self.helpers is None:  # the first stage: helpers are asked for once the spec is whole
@@ -183,6 +190,7 @@ class SharedChunks:
                 i = int(task.split(":")[1])
                 with r.leased(task, self.holder):
                     result = builder.chunk(stage, i, inputs)
+                self.here[stage] = self.here.get(stage, 0) + 1
                 if i in pending:
                     pending.discard(i)
                     yield result
@@ -218,7 +226,7 @@ def help_run(redis: Redis, run: str, make_builder, lease_s: float = LEASE_S) -> 
     (``scene``, ``quality``, ``params``: the coordinator's build parameters).
     """
     r, holder = _Run(redis, run, lease_s), holder_name()
-    builder, done = None, 0
+    builder, done, busy, t_start = None, 0, 0.0, time.perf_counter()
     while (raw := redis.get(r.key("spec"))) is not None:
         task = r.claim(holder)
         if task is None:
@@ -231,13 +239,14 @@ def help_run(redis: Redis, run: str, make_builder, lease_s: float = LEASE_S) -> 
             redis.delete(r.key(f"lease:{task}"))
             continue
         folder = Path(spec["dir"])
+        t0 = time.perf_counter()
         with r.leased(task, holder):
             builder = builder or make_builder(spec)
             result = builder.chunk(stage["stage"], i, _inputs(folder, gen, stage["inputs"]))
             if not folder.is_dir():  # the run ended while this chunk ran
                 break
-            with atomic_writer(folder / f"{gen}-{i}.npz") as f:
-                np.savez(f, **{f"a{k}": a for k, a in enumerate(result)})
+            _write(folder / f"{gen}-{i}.npz", np.savez, **{f"a{k}": a for k, a in enumerate(result)})
             redis.rpush(r.key("done"), task)
-        done += 1
+        done, busy = done + 1, busy + time.perf_counter() - t0
+    log.info("run %s: ran %d chunks, busy %.1f s of %.1f s", run, done, busy, time.perf_counter() - t_start)
     return done
