@@ -17,32 +17,60 @@ from cloudgraph.volume import load_volume, noise_volume
 from worker.chunks import SharedChunks, _Run
 
 from ..engine.test_graph import graph_arrays
-from ..harness import BLENDER, Service, blender_cache, free_port, job_of, rq, start_service, upload, wait_job
+from ..harness import (
+    BLENDER,
+    Service,
+    blender_cache,
+    free_port,
+    job_of,
+    rq,
+    start_service,
+    upload,
+    wait_job,
+    wait_until,
+)
+
+
+def _helpers(svc) -> list[Job]:
+    queue = Queue("cloudgraph", connection=rq(svc))
+    ids = queue.finished_job_registry.get_job_ids() + queue.started_job_registry.get_job_ids()
+    return [j for j in Job.fetch_many(ids, connection=rq(svc)) if j and j.meta.get("kind") == "helper"]
 
 
 def test_two_workers_share_one_precompute_and_write_the_bytes_one_process_writes(tmp_path, variant):
     from cloudgraph.precompute import precompute
 
     svc = start_service(tmp_path / "svc", workers=2, WORKER_THREADS=1)
+    runs = svc.data_dir / "cache" / "runs"
     try:
         with svc.client() as c:
             vid = upload(c, BLENDER).json()["id"]
+            # A shared precompute cancelled while both workers run its chunks ends on both
+            r = c.post("/v1/caches", json={**blender_cache(vid, density=5.0), "quality": "default"})
+            job = job_of(r)
+            wait_until(
+                lambda: c.get(f"/v1/jobs/{job}").json()["stage"] == "reinforce" and _helpers(svc),
+                120,
+                "the precompute never reached its reinforcement with a helper",
+                interval=0.05,
+            )
+            assert c.post(f"/v1/jobs/{job}/cancel").status_code == 200
+            assert wait_job(c, job)["status"] == "canceled"
+            wait_until(
+                lambda: all(j.get_status() == "finished" for j in _helpers(svc)), 30, "the helper went on"
+            )
+            assert not list(rq(svc).scan_iter("cloudgraph:run:*")) and not any(runs.iterdir())
+
             body = {**blender_cache(vid), "quality": "default"}  # 8 light-path chunks, then flights
             r = c.post("/v1/caches", json=body)
             assert r.status_code == 202, r.text
             assert wait_job(c, job_of(r), timeout=300)["status"] == "finished"
             keys = c.get(f"/v1/caches/{r.json()['id']}").json()["keys"]
         # The other worker helped: its helper job ran chunks of this build
-        queue = Queue("cloudgraph", connection=rq(svc))
-        helpers = [
-            j for j in Job.fetch_many(queue.finished_job_registry.get_job_ids(), connection=rq(svc)) if j
-        ]
-        helpers = [j for j in helpers if j.meta.get("kind") == "helper"]
-        assert len(helpers) == 1 and helpers[0].return_value()["chunks"] >= 2, [
-            (j.meta, j.return_value()) for j in helpers
-        ]
+        helped = [j.return_value()["chunks"] for j in _helpers(svc)]
+        assert len(helped) == 2 and helped[-1] >= 2, helped
         assert not list(rq(svc).scan_iter("cloudgraph:run:*"))  # the run's keys are gone
-        assert not any((svc.data_dir / "cache" / "runs").iterdir())  # and its folder's files
+        assert not any(runs.iterdir())  # and its folder
     finally:
         svc.stop()
 
