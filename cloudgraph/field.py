@@ -221,21 +221,24 @@ def bake_field(
 
     # sigma_t at the field points (the voxel values themselves when the grid is not coarsened)
     units = unit_points(shape)
-    sigma_t = np.array(medium.sigma_t(to_world(units)), np.float32).reshape(nz, ny, nx)
+    if shape == tuple(volume.shape):  # texel centres: the voxels, read as they are
+        density = np.ascontiguousarray(volume.density.transpose(2, 1, 0), np.float32)
+        sigma_t = density * np.float32(medium.scale)
+    else:
+        sigma_t = np.array(medium.sigma_t(to_world(units)), np.float32).reshape(nz, ny, nx)
     # Only points next to some density matter: trilinear interpolation at any point of the medium
     # reads 8 grid points, all within one voxel of a non-zero one. The rest stay zero.
     near = maximum_filter(sigma_t > 0, size=3, mode="constant").ravel()
     points = units[near] @ u2w[:3, :3].T + u2w[:3, 3]
 
     # Single scattering: optical depth to the light from every field point (Eq. 4.22 at a point,
-    # deterministic). Step in world units: TAU_STEP of the smallest field voxel.
-    t0 = time.perf_counter()
+    # deterministic). Step in world units: TAU_STEP of the smallest field voxel. Its chunks go
+    # out now and are collected after G below, which does not need them (workers that share the
+    # precompute march meanwhile).
     voxel = float((np.linalg.norm(u2w[:3, :3], axis=0) / np.asarray(shape)).min())
     to_light = -np.asarray(light_dir, float) / np.linalg.norm(light_dir)
     inputs = {"points": points.astype(np.float32), "to_light": to_light, "step": np.array([TAU_STEP * voxel])}
-    tau = placed(chunks(builder, "field_tau", inputs), len(points), 1)
-    tau_light = _scatter(near, tau[:, 0], (nz, ny, nx))
-    t_tau = time.perf_counter() - t0
+    marched = chunks(builder, "field_tau", inputs)
 
     # Multiple scattering, as ``gather`` computes it but on the grid: one more flight from the
     # grid point, to p'', where the graph's albedo L' stands in for the rest (Eq. 4.25):
@@ -258,9 +261,15 @@ def bake_field(
         k += 1
     q = unit_points(ms_shape)[ms_near] @ u2w[:3, :3].T + u2w[:3, 3]
     inputs = {"points": q.astype(np.float32), "G": G, "step": np.array([MS_STEP * voxel])}
-    L_ms = placed(chunks(builder, "field_ms", inputs), len(q), 3)
-    radiance_ms = _scatter(ms_near, L_ms, (*ms_shape[::-1], 3))
+    gathered = chunks(builder, "field_ms", inputs)
     t_ms = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    tau_light = _scatter(near, placed(marched, len(points), 1)[:, 0], (nz, ny, nx))
+    t_tau = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    radiance_ms = _scatter(ms_near, placed(gathered, len(q), 3), (*ms_shape[::-1], 3))
+    t_ms += time.perf_counter() - t0
 
     meta = {
         "radiance_key": radiance_key,

@@ -536,8 +536,9 @@ def build_graph(
     """Builds the graph of a volume and density scale (a variant must be set).
 
     ``progress(stage, fraction)`` is called as the build goes. ``chunks(builder, stage, inputs)``
-    runs a stage's chunks (:meth:`GraphBuilder.chunk`) and yields their results in any order:
-    here by default, or spread over workers; the graph is the same bytes either way. ``builder``:
+    puts a stage's chunks (:meth:`GraphBuilder.chunk`) out and returns an iterator of their
+    results in any order: run here as it is iterated by default, or spread over workers (who
+    may start before it is iterated); the graph is the same bytes either way. ``builder``:
     one already made for these arguments.
     """
     progress = progress or (lambda stage, fraction: None)
@@ -546,22 +547,21 @@ def build_graph(
     origin = builder.origin
     table = NodeTable(origin, params.radius)
 
-    # Light paths (§4.3), chunk by chunk, each reduced into the table and dropped
-    n = builder.n_chunks("trace")
-    for i, result in enumerate(chunks(builder, "trace")):
-        table.merge(result)
-        progress("trace", 0.3 * (i + 1) / n)
+    # Light paths (§4.3), chunk by chunk, each reduced into the table and dropped. They are put
+    # out first: the coverage seeds below need none of them (merges commute).
+    traced = chunks(builder, "trace")
     # Coverage seeds (our addition): light paths are cut at max_collisions, so in thick media
     # they never reach the far side. Points drawn in proportion to density seed nodes there too;
     # reinforcement then gives every node its own outgoing samples.
     seeds = density_points(volume, params.coverage_seeds, params.seed)
     none = np.zeros(0, np.int64)
     priority = uniform_hash(params.seed, 1, np.arange(len(seeds)))
-    table.merge(
-        reduce_chunk(
-            node_cells(seeds, params.radius, origin), seeds, priority, none, none, origin, params.radius
-        )
-    )
+    seed_cells = node_cells(seeds, params.radius, origin)
+    table.merge(reduce_chunk(seed_cells, seeds, priority, none, none, origin, params.radius))
+    n = builder.n_chunks("trace")
+    for i, result in enumerate(traced):
+        table.merge(result)
+        progress("trace", 0.3 * (i + 1) / n)
     t_trace = time.perf_counter() - t_start
 
     # Reinforcement of sparse nodes (§4.3, App. B)

@@ -125,11 +125,9 @@ def precompute(
             graph = build_graph(
                 volume, scene.medium.density_scale, params, lambda s, f: progress(s, 0.7 * f), chunks, builder
             )
-            store.save_graph(gkey, graph)
-    if found is not None:
-        (radiance, radiance_gather), rstats = found
-    else:
-        progress("lighting", 0.7)
+    if found is None:
+        # The direct light's chunks go out first: workers that share this precompute light the
+        # nodes while the graph is written
         t0 = time.perf_counter()
         inputs = {
             "positions": graph.positions,
@@ -138,7 +136,14 @@ def precompute(
             "samples": np.array([LIGHTING["samples"]]),
             "seed": np.array([params.seed]),
         }
-        L_d = placed(chunks(builder, "lighting", inputs), graph.n_nodes, 3, np.float64)
+        lit = chunks(builder, "lighting", inputs)
+    if not graph_reused:
+        store.save_graph(gkey, graph)
+    if found is not None:
+        (radiance, radiance_gather), rstats = found
+    else:
+        progress("lighting", 0.7)
+        L_d = placed(lit, graph.n_nodes, 3, np.float64)
         t_light = time.perf_counter() - t0
         progress("transport", 0.85)
         t0 = time.perf_counter()

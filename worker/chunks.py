@@ -3,7 +3,8 @@
 
 The worker that runs a precompute job coordinates it (:class:`SharedChunks`). For each stage of
 the build it writes the stage's inputs to a run folder on the shared cache volume, pushes one
-task per chunk to a Redis list and works through the list itself, while helper jobs (put at the
+task per chunk to a Redis list and works through the list itself (after work of its own that
+does not need the stage's results, so that helpers start first), while helper jobs (put at the
 front of the queue, one per other worker) take tasks from the same list and leave their results
 in the run folder (:func:`help_run`). A task is claimed atomically with a lease that its holder
 renews every LEASE_S / 3 seconds; the task of a killed worker (its lease lapsed) goes back on the
@@ -16,10 +17,11 @@ Keys, under ``cloudgraph:run:<run>:``:
 |---------------|---------------------------------------------------------------------------|
 | spec          | JSON {scene, quality, dir}: what a helper needs; expires unless the       |
 |               | coordinator renews it, so helpers of a dead coordinator stop              |
-| stage         | JSON {gen, stage, inputs}: the stage now running (gen counts stages)      |
-| todo          | tasks ``<gen>:<chunk>`` not yet claimed                                   |
+| stage:<gen>   | JSON {stage, inputs} of the gen-th stage put out (inputs in               |
+|               | ``<dir>/<gen>-<name>.npy``); several can be out at once                   |
+| todo          | tasks ``<gen>:<chunk>`` not yet claimed, oldest stage first               |
 | lease:<task>  | the holder of a claimed task; expires LEASE_S after its last renewal      |
-| done          | tasks finished by helpers (results in ``<dir>/<gen>-<chunk>.npz``)        |
+| done:<gen>    | tasks of that stage finished by helpers (``<dir>/<gen>-<chunk>.npz``)     |
 """
 
 from __future__ import annotations
@@ -133,6 +135,7 @@ class SharedChunks:
         self.folder, self.ask_helpers = Path(folder), ask_helpers
         self.holder = holder_name()
         self.gen, self.helpers, self.redone, self.here = 0, None, 0, {}
+        self.stages, self.pending, self.ready = {}, {}, {}  # per stage out: (stage, inputs), chunks
         self._stop = threading.Event()
         self._beat = threading.Thread(target=self._renew_spec, daemon=True)
 
@@ -151,8 +154,7 @@ class SharedChunks:
         self._stop.set()
         self._beat.join()
         r = self.r.redis
-        leases = list(r.scan_iter(match=self.r.key("lease:*"), count=1000))
-        r.delete(self.r.key("spec"), self.r.key("stage"), self.r.key("todo"), self.r.key("done"), *leases)
+        r.delete(self.r.key("spec"), *r.scan_iter(match=self.r.key("*"), count=1000))
         shutil.rmtree(self.folder, ignore_errors=True)
 
     def _set_spec(self) -> None:
@@ -166,57 +168,73 @@ class SharedChunks:
                 log.exception("could not renew the run's spec")
 
     def __call__(self, builder, stage: str, inputs: dict | None = None):
-        """Runs one stage's chunks here and on the helpers; yields results as they come."""
+        """Puts one stage's chunks on the list at once, for the helpers to start on, and returns
+        an iterator that works on them here too and yields their results as they come. Several
+        stages may be out at a time: the caller can do work of its own before it iterates."""
         r, gen = self.r, self.gen + 1
         self.gen = gen
         n = builder.n_chunks(stage, inputs)
         names = sorted(inputs or {})
         for name in names:
             _write(self.folder / f"{gen}-{name}.npy", np.save, np.asarray(inputs[name]))
-        r.redis.set(r.key("stage"), json.dumps({"gen": gen, "stage": stage, "inputs": names}))
-        r.redis.rpush(r.key("todo"), *(f"{gen}:{i}" for i in range(n)))
+        self.stages[gen] = (stage, inputs)
+        self.pending[gen], self.ready[gen] = set(range(n)), []
+        r.redis.set(r.key(f"stage:{gen}"), json.dumps({"stage": stage, "inputs": names}))
+        if n:
+            r.redis.rpush(r.key("todo"), *(f"{gen}:{i}" for i in range(n)))
         if self.helpers is None:  # the first stage: helpers are asked for once the spec is whole
             self.spec["params"] = builder.params.to_dict()
             self._set_spec()
             self.helpers = self.ask_helpers() if self.ask_helpers else 0
-        pending = set(range(n))
-        while pending:
+        return self._collect(builder, gen)
+
+    def _collect(self, builder, gen: int):
+        r, pending, ready = self.r, self.pending[gen], self.ready[gen]
+        while pending or ready:
+            if ready:
+                yield ready.pop()
+                continue
             # Results the helpers left
-            while (item := r.redis.lpop(r.key("done"))) is not None:
-                yield from self._finished(item.decode(), gen, pending)
-            # A chunk of our own
+            while (item := r.redis.lpop(r.key(f"done:{gen}"))) is not None:
+                self._finished(item.decode())
+            if ready:
+                continue
+            # A chunk of our own: of this stage or an earlier one still out
             task = r.claim(self.holder)
             if task is not None:
-                i = int(task.split(":")[1])
+                g, i = (int(x) for x in task.split(":"))
+                stage, inputs = self.stages[g]
                 with r.leased(task, self.holder):
                     result = builder.chunk(stage, i, inputs)
                 self.here[stage] = self.here.get(stage, 0) + 1
-                if i in pending:
-                    pending.discard(i)
-                    yield result
+                if i in self.pending[g]:
+                    self.pending[g].discard(i)
+                    self.ready[g].append(result)
                 continue
             # Every chunk is taken: put back those whose holder died, then wait for the others
             for i in sorted(pending):
                 task = f"{gen}:{i}"
-                if not r.redis.exists(r.key(f"lease:{task}")) and r.redis.lpos(r.key("done"), task) is None:
+                lapsed = not r.redis.exists(r.key(f"lease:{task}"))
+                if lapsed and r.redis.lpos(r.key(f"done:{gen}"), task) is None:
                     log.warning("chunk %s of run %s lost its worker: it is redone", task, r.run)
                     self.redone += 1
                     r.redis.rpush(r.key("todo"), task)
-            item = r.redis.blpop([r.key("done")], timeout=POLL_S)
+            item = r.redis.blpop([r.key(f"done:{gen}")], timeout=POLL_S)
             if item is not None:
-                yield from self._finished(item[1].decode(), gen, pending)
+                self._finished(item[1].decode())
 
-    def _finished(self, task: str, gen: int, pending: set):
+    def _finished(self, task: str) -> None:
+        """A helper's result, read into its stage's ready list (dropped if it came twice)."""
         g, i = (int(x) for x in task.split(":"))
         path = self.folder / f"{g}-{i}.npz"
-        if g != gen or i not in pending:  # a chunk redone twice: its first result counted
+        if i not in self.pending.get(g, ()):  # a chunk redone twice: its first result counted
             path.unlink(missing_ok=True)
             return
         with np.load(path) as z:
             result = tuple(z[f"a{k}"] for k in range(len(z.files)))
         path.unlink()
-        pending.discard(i)
-        yield result
+        self.pending[g].discard(i)
+        self.ready[g].append(result)
 
 
 def help_run(redis: Redis, run: str, make_builder, lease_s: float = LEASE_S) -> int:
@@ -233,11 +251,10 @@ def help_run(redis: Redis, run: str, make_builder, lease_s: float = LEASE_S) -> 
             time.sleep(POLL_S)
             continue
         spec = json.loads(raw)
-        stage = json.loads(redis.get(r.key("stage")) or "{}")
         gen, i = (int(x) for x in task.split(":"))
-        if stage.get("gen") != gen:  # a task of a stage already over (redone elsewhere)
-            redis.delete(r.key(f"lease:{task}"))
-            continue
+        stage = json.loads(redis.get(r.key(f"stage:{gen}")) or "null")
+        if stage is None:  # the run ended between the claim and now
+            break
         folder = Path(spec["dir"])
         t0 = time.perf_counter()
         with r.leased(task, holder):
@@ -246,7 +263,7 @@ def help_run(redis: Redis, run: str, make_builder, lease_s: float = LEASE_S) -> 
             if not folder.is_dir():  # the run ended while this chunk ran
                 break
             _write(folder / f"{gen}-{i}.npz", np.savez, **{f"a{k}": a for k, a in enumerate(result)})
-            redis.rpush(r.key("done"), task)
+            redis.rpush(r.key(f"done:{gen}"), task)
         done, busy = done + 1, busy + time.perf_counter() - t0
     log.info("run %s: ran %d chunks, busy %.1f s of %.1f s", run, done, busy, time.perf_counter() - t_start)
     return done
