@@ -377,8 +377,17 @@ class NodeTable:
 
 
 def _lowest(group: np.ndarray, priority: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The entries of the MEMBERS_KEPT lowest priorities of each group, and their ranks in it."""
-    order = np.lexsort((priority, group))
+    """The entries of the MEMBERS_KEPT lowest priorities of each group (non-negative integers),
+    and their ranks in it."""
+    # Only entries below a group's threshold (4 x MEMBERS_KEPT / its size) are sorted where at
+    # least MEMBERS_KEPT of the group are below it, which holds its lowest then; the whole
+    # group elsewhere. The same entries as sorting all, in a fraction of the time.
+    size = np.bincount(group)
+    below = priority < np.minimum(1.0, 4.0 * MEMBERS_KEPT / np.maximum(size, 1))[group]
+    enough = np.bincount(group[below], minlength=len(size)) >= MEMBERS_KEPT
+    cand = np.flatnonzero(below | ~enough[group])
+    by_priority = cand[np.argsort(priority[cand], kind="stable")]
+    order = by_priority[np.argsort(group[by_priority], kind="stable")]  # as np.lexsort, faster
     starts = np.flatnonzero(np.diff(group[order], prepend=-1))
     rank = np.arange(len(order)) - np.repeat(starts, np.diff(np.append(starts, len(order))))
     low = rank < MEMBERS_KEPT
