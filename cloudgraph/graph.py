@@ -353,27 +353,32 @@ class NodeTable:
     def merge(self, part: tuple[np.ndarray, ...]) -> None:
         """Adds a chunk's :func:`reduce_chunk` (per cell: collisions, their fixed-point sum and
         lowest priorities; outgoing samples per start cell; edge counts)."""
-        keys, count, sums, kept_keys, kept_points, kept_priority, src, src_count, e_src, e_dst, e_count = part
-        node = self.index(keys)
+        cells, count, sums, kept_cell, kept_points, kept_pri, src, src_count, e_src, e_dst, e_count = part
+        node, src_node = self.index(cells), self.index(src)
         self.count[node] += count
         self.sum[node] += sums
         # The kept sample of each node touched: its MEMBERS_KEPT lowest priorities so far. Kept
-        # priorities are in ascending order, so a collision above a node's last cannot enter.
-        cand = self.index(kept_keys)
-        enter = kept_priority < self.priority[cand, -1]
-        touched = np.unique(cand[enter])
-        cand_node = np.concatenate([np.repeat(touched, MEMBERS_KEPT), cand[enter]])
-        cand_pri = np.concatenate([self.priority[touched].ravel(), kept_priority[enter]])
-        cand_pts = np.concatenate([self.kept[touched].reshape(-1, 3), kept_points[enter]])
-        keep, rank = _lowest(cand_node, cand_pri)
-        self.priority[cand_node[keep], rank] = cand_pri[keep]
-        self.kept[cand_node[keep], rank] = cand_pts[keep]
+        # priorities are in ascending order, so a collision above a node's last cannot enter;
+        # a chunk brings at most MEMBERS_KEPT a node, so each node's row of kept and entering
+        # ones (2 x MEMBERS_KEPT, padded with inf) is sorted on its own.
+        cand = node[kept_cell]
+        enter = kept_pri < self.priority[cand, -1]
+        cand, priority, points = cand[enter], kept_pri[enter], kept_points[enter]
+        touched, row = np.unique(cand, return_inverse=True)
+        by_row = np.argsort(row, kind="stable")
+        slot = np.empty(len(row), np.int64)
+        slot[by_row] = MEMBERS_KEPT + np.arange(len(row)) - np.searchsorted(row[by_row], row[by_row])
+        pri = np.full((len(touched), 2 * MEMBERS_KEPT), np.inf)
+        pts = np.zeros((len(touched), 2 * MEMBERS_KEPT, 3), np.float32)
+        pri[:, :MEMBERS_KEPT], pts[:, :MEMBERS_KEPT] = self.priority[touched], self.kept[touched]
+        pri[row, slot], pts[row, slot] = priority, points
+        low = np.argsort(pri, axis=1, kind="stable")[:, :MEMBERS_KEPT]
+        self.priority[touched] = np.take_along_axis(pri, low, axis=1)
+        self.kept[touched] = np.take_along_axis(pts, low[..., None], axis=1)
         # Samples and edge counts
-        self.out[self.index(src)] += src_count
+        self.out[src_node] += src_count
         n = len(self)
-        self.counts = self.counts + sp.csr_matrix(
-            (e_count, (self.index(e_src), self.index(e_dst))), shape=(n, n)
-        )
+        self.counts = self.counts + sp.csr_matrix((e_count, (src_node[e_src], node[e_dst])), shape=(n, n))
 
 
 def _lowest(group: np.ndarray, priority: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -399,29 +404,29 @@ def reduce_chunk(keys, points, priority, src, dst, origin, radius) -> tuple[np.n
     outgoing samples ((S,) cell keys of their start, (S,) of their collision or -1: escaped),
     reduced per cell and per edge where they were traced, so that what is sent and merged grows
     with the cells a chunk touches, not with its samples. Merging the reductions gives the table
-    that merging the samples would (sums of integers, lowest priorities)."""
+    that merging the samples would (sums of integers, lowest priorities). Kept collisions and
+    edges refer to cells by their index in ``cells`` (edge starts: in ``src``)."""
     cells, inv, count = np.unique(keys, return_inverse=True, return_counts=True)
     fixed = np.round((points - origin) / (radius / FIXED_POINT))
     sums = np.stack([np.bincount(inv, fixed[:, i], len(cells)) for i in range(3)], axis=1).astype(np.int64)
     keep, _ = _lowest(inv, priority)
-    src_cells, src_count = np.unique(src, return_counts=True)
+    src_cells, src_inv, src_count = np.unique(src, return_inverse=True, return_counts=True)
+    # Edges as (start cell, collision cell) indices into src_cells and cells, counted once each
     hit = dst >= 0
-    a, b = src[hit], dst[hit]
-    order = np.lexsort((b, a))
-    a, b = a[order], b[order]
-    first = np.flatnonzero(np.r_[True, (a[1:] != a[:-1]) | (b[1:] != b[:-1])]) if len(a) else np.zeros(0, int)
-    e_count = np.diff(np.append(first, len(a)))
+    a, b = src_inv[hit], np.searchsorted(cells, dst[hit])
+    edge = a * len(cells) + b
+    edges, e_count = np.unique(edge, return_counts=True)
     return (
         cells,
         count.astype(np.int64),
         sums,
-        keys[keep],
+        inv[keep],
         points[keep].astype(np.float32),
         priority[keep],
         src_cells,
         src_count.astype(np.int64),
-        a[first],
-        b[first],
+        edges // len(cells),
+        edges % len(cells),
         e_count.astype(np.int64),
     )
 
