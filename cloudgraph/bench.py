@@ -110,10 +110,11 @@ def reference(bs: BenchScene, scene: Scene, spp: int, cache_dir: Path) -> np.nda
     """volpath (RR off) at ``spp``, kept on disk by the scene's hash."""
     from .cache import volume_id
 
+    # A volpath image does not depend on the engine: its key holds the volume's hash at a fixed
+    # format version (4, when this was fixed), so that engine changes keep the references
+    vid = volume_id(bs.volume, version=4)
     key = hashlib.sha256(
-        json.dumps(
-            [volume_id(bs.volume), scene.model_dump(exclude={"volume"}), spp], sort_keys=True, default=str
-        ).encode()
+        json.dumps([vid, scene.model_dump(exclude={"volume"}), spp], sort_keys=True, default=str).encode()
     ).hexdigest()[:24]
     path = cache_dir / f"{bs.name}-{key}.npy"
     if path.is_file():

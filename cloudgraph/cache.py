@@ -38,10 +38,11 @@ def _digest(obj) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
-def volume_id(volume: Volume) -> str:
-    """Content hash of the density values, their index placement and the world transform."""
+def volume_id(volume: Volume, version: int = ENGINE_FORMAT_VERSION) -> str:
+    """Content hash of the density values, their index placement and the world transform (with
+    the engine format ``version``: a new engine gets new keys)."""
     h = hashlib.sha256()
-    h.update(f"cloudgraph-volume-v{ENGINE_FORMAT_VERSION}".encode())
+    h.update(f"cloudgraph-volume-v{version}".encode())
     h.update(np.asarray(volume.shape, np.int64).tobytes())
     h.update(np.asarray(volume.index_min, np.int64).tobytes())
     h.update(np.round(volume.index_to_world, 9).astype(np.float64).tobytes())

@@ -142,7 +142,11 @@ class SharedChunks:
     def __enter__(self) -> SharedChunks:
         # Folders of runs whose coordinator died (their spec expired) go first
         for old in self.folder.parent.glob("*"):
-            if not self.r.redis.exists(run_key(old.name, "spec")) and time.time() - old.stat().st_mtime > 600:
+            try:
+                stale = time.time() - old.stat().st_mtime > 600
+            except OSError:  # removed meanwhile by another coordinator
+                continue
+            if stale and not self.r.redis.exists(run_key(old.name, "spec")):
                 shutil.rmtree(old, ignore_errors=True)
         self.folder.mkdir(parents=True, exist_ok=True)
         self._set_spec()
