@@ -104,8 +104,9 @@ def precompute(
 ) -> RadianceCache:
     """Finds or builds the radiance cache for the scene's (volume, medium, light, depth).
 
-    ``progress(stage, fraction)`` is called as it goes; ``chunks`` runs the chunks of the graph build and
-    the field bake (:class:`~cloudgraph.graph.GraphBuilder`: here, or over workers). A variant must be set.
+    ``progress(stage, fraction)`` is called as it goes; ``chunks`` runs the chunks of the graph
+    build, the direct lighting and the field bake (:class:`~cloudgraph.graph.GraphBuilder`): here,
+    or over workers (worker/chunks.py), with the same result. A variant must be set.
     """
     store = store or CacheStore()
     progress = progress or (lambda stage, fraction: None)

@@ -48,7 +48,7 @@ def report(stage: str, fraction: float) -> None:
 
 
 def _precompute(scene, volume, quality: str, progress):
-    """The scene's radiance cache, its graph built by every free worker (worker/chunks.py); the
+    """The scene's radiance cache, its chunks run by every free worker (worker/chunks.py); the
     store is then trimmed to its size limit (LRU)."""
     from cloudgraph.graph import local_chunks
     from cloudgraph.precompute import precompute
