@@ -381,22 +381,22 @@ class NodeTable:
         self.counts = self.counts + sp.csr_matrix((e_count, (src_node[e_src], node[e_dst])), shape=(n, n))
 
 
-def _lowest(group: np.ndarray, priority: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The entries of the MEMBERS_KEPT lowest priorities of each group (non-negative integers),
-    and their ranks in it."""
-    # Only entries below a group's threshold (4 x MEMBERS_KEPT / its size) are sorted where at
-    # least MEMBERS_KEPT of the group are below it, which holds its lowest then; the whole
-    # group elsewhere. The same entries as sorting all, in a fraction of the time.
+def _lowest(group: np.ndarray, priority: np.ndarray) -> np.ndarray:
+    """The entries of the MEMBERS_KEPT lowest priorities of each group (non-negative integers)."""
+    # A group of at most MEMBERS_KEPT keeps all; of a larger one, only entries below its
+    # threshold (4 x MEMBERS_KEPT / its size) are sorted where at least MEMBERS_KEPT are below
+    # it, which then holds its lowest; the whole group elsewhere. The same entries as sorting
+    # all, in a fraction of the time.
     size = np.bincount(group)
+    small = size[group] <= MEMBERS_KEPT
     below = priority < np.minimum(1.0, 4.0 * MEMBERS_KEPT / np.maximum(size, 1))[group]
     enough = np.bincount(group[below], minlength=len(size)) >= MEMBERS_KEPT
-    cand = np.flatnonzero(below | ~enough[group])
+    cand = np.flatnonzero(~small & (below | ~enough[group]))
     by_priority = cand[np.argsort(priority[cand], kind="stable")]
     order = by_priority[np.argsort(group[by_priority], kind="stable")]  # as np.lexsort, faster
     starts = np.flatnonzero(np.diff(group[order], prepend=-1))
     rank = np.arange(len(order)) - np.repeat(starts, np.diff(np.append(starts, len(order))))
-    low = rank < MEMBERS_KEPT
-    return order[low], rank[low]
+    return np.sort(np.concatenate([np.flatnonzero(small), order[rank < MEMBERS_KEPT]]))
 
 
 def reduce_chunk(keys, points, priority, src, dst, origin, radius) -> tuple[np.ndarray, ...]:
@@ -409,7 +409,7 @@ def reduce_chunk(keys, points, priority, src, dst, origin, radius) -> tuple[np.n
     cells, inv, count = np.unique(keys, return_inverse=True, return_counts=True)
     fixed = np.round((points - origin) / (radius / FIXED_POINT))
     sums = np.stack([np.bincount(inv, fixed[:, i], len(cells)) for i in range(3)], axis=1).astype(np.int64)
-    keep, _ = _lowest(inv, priority)
+    keep = _lowest(inv, priority)
     src_cells, src_inv, src_count = np.unique(src, return_inverse=True, return_counts=True)
     # Edges as (start cell, collision cell) indices into src_cells and cells, counted once each
     hit = dst >= 0
