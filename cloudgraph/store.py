@@ -122,7 +122,12 @@ def evict_lru(root: str | Path, max_bytes: int, min_age_s: float = 300.0) -> lis
                 tmp.unlink()
         except FileNotFoundError:
             pass
-    files = [p for pat in ("*.npz", "*.cgf.gz") for p in Path(root).rglob(pat) if p.is_file()]
+    files = [
+        p
+        for pat in ("*.npz", "*.cgf.gz")
+        for p in Path(root).rglob(pat)
+        if p.is_file() and "runs" not in p.relative_to(root).parts  # a shared run's own files
+    ]
     stats = [(p, p.stat()) for p in files]
     total = sum(s.st_size for _, s in stats)
     removed = []
