@@ -264,9 +264,10 @@ def help_run(redis: Redis, run: str, make_builder, lease_s: float = LEASE_S) -> 
         with r.leased(task, holder):
             builder = builder or make_builder(spec)
             result = builder.chunk(stage["stage"], i, _inputs(folder, gen, stage["inputs"]))
-            if not folder.is_dir():  # the run ended while this chunk ran
+            try:
+                _write(folder / f"{gen}-{i}.npz", np.savez, **{f"a{k}": a for k, a in enumerate(result)})
+            except FileNotFoundError:  # the run ended (its folder went) while this chunk ran
                 break
-            _write(folder / f"{gen}-{i}.npz", np.savez, **{f"a{k}": a for k, a in enumerate(result)})
             redis.rpush(r.key(f"done:{gen}"), task)
         done, busy = done + 1, busy + time.perf_counter() - t0
     log.info("run %s: ran %d chunks, busy %.1f s of %.1f s", run, done, busy, time.perf_counter() - t_start)
