@@ -121,11 +121,11 @@ class SharedChunks:
     Args:
         redis: the queue's Redis.
         run: a name unique to this precompute attempt.
-        spec: ``scene`` (a scene dict) and ``quality``: what a helper needs to make the builder
-            (the build parameters are added at the first stage).
+        spec: ``scene`` (a scene dict), ``quality`` and, where known, ``params`` (the build
+            parameters, else added at the first stage): what a helper needs to make the builder.
+            Helpers are asked for once the spec is whole.
         folder: the run folder, on a volume every worker shares.
-        ask_helpers: called once, when the first stage starts, to enqueue helper jobs; returns
-            how many it asked for.
+        ask_helpers: called once, to enqueue helper jobs; returns how many it asked for.
         lease_s: see :data:`LEASE_S`.
     """
 
@@ -151,6 +151,8 @@ class SharedChunks:
         self.folder.mkdir(parents=True, exist_ok=True)
         self._set_spec()
         self._beat.start()
+        if "params" in self.spec:  # the spec is whole: helpers can start on their set-up now
+            self.helpers = self.ask_helpers() if self.ask_helpers else 0
         return self
 
     def __exit__(self, *exc) -> None:

@@ -50,19 +50,21 @@ def report(stage: str, fraction: float) -> None:
 def _precompute(scene, volume, quality: str, progress):
     """The scene's radiance cache, its chunks run by every free worker (worker/chunks.py); the
     store is then trimmed to its size limit (LRU)."""
-    from cloudgraph.graph import local_chunks
-    from cloudgraph.precompute import precompute
+    from cloudgraph.graph import build_params, local_chunks
+    from cloudgraph.precompute import cache_keys, precompute
     from cloudgraph.store import evict_lru
 
     s, job = state(), get_current_job()
-    if job is None:  # called outside a job: build here
-        shared = nullcontext(local_chunks)
-    else:
+    params = build_params(volume, scene.medium.density_scale, quality)
+    rkey = cache_keys(scene, volume, params)["radiance_key"]
+    if job is None or (s.caches.radiance_path(rkey).is_file() and s.caches.field_path(rkey).is_file()):
+        shared = nullcontext(local_chunks)  # outside a job, or nothing to compute: here
+    else:  # helpers are asked for at once, so that they load the volume while this worker does
         run = f"{job.id}.{uuid.uuid4().hex[:8]}"
         shared = SharedChunks(
             job.connection,
             run,
-            {"scene": scene.model_dump(mode="json"), "quality": quality},
+            {"scene": scene.model_dump(mode="json"), "quality": quality, "params": params.to_dict()},
             s.caches.root / "runs" / run,
             partial(_ask_helpers, job.connection, run),
         )
