@@ -72,6 +72,7 @@ MS_TR_MIN = 1e-2
 #: chunk of the light march: chunks bound the device memory and may run on other workers.
 MS_CHUNK = 1 << 12
 TAU_CHUNK = 1 << 18
+_CHUNK = {"field_tau": TAU_CHUNK, "field_ms": MS_CHUNK}
 #: Light march step, in field voxels (midpoint rule).
 TAU_STEP = 0.5
 #: Optical depth where the light march stops: exp(-16) ~ 1e-7 of the light is left.
@@ -215,8 +216,10 @@ def bake_field(
     shape = field_shape(volume.shape)
     nx, ny, nz = shape
 
-    def to_world(u: np.ndarray):
-        w = u @ u2w[:3, :3].T + u2w[:3, 3]
+    def to_world(u: np.ndarray) -> np.ndarray:
+        return u @ u2w[:3, :3].T + u2w[:3, 3]
+
+    def point3f(w: np.ndarray) -> mi.Point3f:
         return mi.Point3f(*(w[:, i].astype(np.float32) for i in range(3)))
 
     # sigma_t at the field points (the voxel values themselves when the grid is not coarsened)
@@ -225,11 +228,11 @@ def bake_field(
         density = np.ascontiguousarray(volume.density.transpose(2, 1, 0), np.float32)
         sigma_t = density * np.float32(medium.scale)
     else:
-        sigma_t = np.array(medium.sigma_t(to_world(units)), np.float32).reshape(nz, ny, nx)
+        sigma_t = np.array(medium.sigma_t(point3f(to_world(units))), np.float32).reshape(nz, ny, nx)
     # Only points next to some density matter: trilinear interpolation at any point of the medium
     # reads 8 grid points, all within one voxel of a non-zero one. The rest stay zero.
     near = maximum_filter(sigma_t > 0, size=3, mode="constant").ravel()
-    points = units[near] @ u2w[:3, :3].T + u2w[:3, 3]
+    points = to_world(units[near])
 
     # Single scattering: optical depth to the light from every field point (Eq. 4.22 at a point,
     # deterministic). Step in world units: TAU_STEP of the smallest field voxel. Its chunks go
@@ -248,7 +251,7 @@ def bake_field(
     # per point (a spherical Fibonacci set, turned at random per point) marched in closed form.
     t0 = time.perf_counter()
     grid = NodeGrid.build(graph.positions, graph.search_radius, radiance_gather * np.asarray(albedo)[None, :])
-    G = grid.lookup(to_world(units[near]), (0.05 * node_radius) ** 2, mi.Bool(True))
+    G = grid.lookup(point3f(points), (0.05 * node_radius) ** 2, mi.Bool(True))
     dr.eval(G)  # one kernel for the three channels
     G = np.stack([np.array(c, np.float32) for c in (G.x, G.y, G.z)], axis=1)
     G = _fill_empty(_scatter(near, G, (nz, ny, nx, 3)), near.reshape(nz, ny, nx))
@@ -259,7 +262,7 @@ def bake_field(
         if ms_near.sum() <= MS_MAX_POINTS:
             break
         k += 1
-    q = unit_points(ms_shape)[ms_near] @ u2w[:3, :3].T + u2w[:3, 3]
+    q = to_world(unit_points(ms_shape)[ms_near])
     inputs = {"points": q.astype(np.float32), "G": G, "step": np.array([MS_STEP * voxel])}
     gathered = chunks(builder, "field_ms", inputs)
     t_ms = time.perf_counter() - t0
@@ -301,7 +304,7 @@ def field_chunk(medium: DensityField, stage: str, index: int, inputs: dict) -> t
     ``field_tau``, optical depth to the light (``to_light``); ``field_ms``, the multiple-
     scattering gather through ``G``. Returns (first point, values): chunks may come back in any
     order, from any worker (worker/chunks.py), and each gives the same values wherever it runs."""
-    size = TAU_CHUNK if stage == "field_tau" else MS_CHUNK
+    size = _CHUNK[stage]
     a, step = index * size, float(inputs["step"][0])
     q = np.asarray(inputs["points"][a : a + size], np.float32)
     if stage == "field_tau":
@@ -314,7 +317,7 @@ def field_chunk(medium: DensityField, stage: str, index: int, inputs: dict) -> t
 
 
 def field_chunks(stage: str, inputs: dict) -> int:
-    return -(-len(inputs["points"]) // (TAU_CHUNK if stage == "field_tau" else MS_CHUNK))
+    return -(-len(inputs["points"]) // _CHUNK[stage])
 
 
 def _scatter(mask: np.ndarray, values: np.ndarray, shape) -> np.ndarray:

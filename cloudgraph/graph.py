@@ -330,6 +330,10 @@ class NodeTable:
     def __len__(self) -> int:
         return len(self.keys)
 
+    def means(self) -> np.ndarray:
+        """(N, 3) the mean of each node's collisions, world units (from the fixed-point sums)."""
+        return self.origin + self.sum * self.unit / self.count[:, None]
+
     def index(self, keys: np.ndarray) -> np.ndarray:
         """Node indices of cell keys; cells without a node become new nodes."""
         pos = np.searchsorted(self.sorted_keys, keys)
@@ -607,7 +611,7 @@ def build_graph(
     # nearest nodes (Eq. 4.21, thesis §4.3.2)
     t0 = time.perf_counter()
     n, by_key = len(table), table.order  # nodes in order of their keys: the same however found
-    nodes = origin + table.sum[by_key] * table.unit / table.count[by_key, None]
+    nodes = table.means()[by_key]
     out_samples = table.out[by_key]
     counts = sp.csr_matrix(table.counts[by_key][:, by_key])
     counts.sort_indices()
