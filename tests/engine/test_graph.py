@@ -15,7 +15,7 @@ import scipy.sparse.linalg as spla
 from cloudgraph.cache import CacheStore
 from cloudgraph.metrics import bias_metrics
 from cloudgraph.precompute import precompute
-from cloudgraph.volume import sphere_volume
+from cloudgraph.volume import Volume, sphere_volume
 
 from ..helpers import LIGHT, medium_scene, reference, render_march
 
@@ -125,6 +125,53 @@ def test_energy_balance_of_a_sphere_at_albedo_1_side_and_back_lit(variant, tmp_p
     # (the cause of the bias, README "Accuracy"): 1.064 / 6.6 % and 1.165 / 16.6 %.
     assert abs(m["mean_ratio"] - 1.0) < 0.04
     assert m["binned_relMAE"] < 0.08
+
+
+def two_density_box():
+    """32x16x16 voxels of side 1: sigma_t 1 for x < 16, 1/16 beyond (optical depth 1 across)."""
+    density = np.ones((32, 16, 16), np.float32)
+    density[16:] = 1.0 / 16.0
+    return Volume(density, (0, 0, 0), np.eye(4))
+
+
+def test_nodes_grow_with_the_free_path_where_the_medium_is_thin(variant, tmp_path):
+    from cloudgraph.graph import NodeCells, build_params
+
+    volume = two_density_box()
+    params = build_params(volume, 1.0, "default", max_level=3)
+    # Independent expectation: the typical free path is 1.06 voxels, and 0.35 of it clamps to
+    # 0.6 voxels; the thin half's free path is 16 voxels, 0.35 of it 5.6: level
+    # floor(log2(5.6 / 0.6)) = 3, cells 8 base cells a side. Blocks are 8 cells (5.54 voxels)
+    # from x = -1.1: those reaching x < 17 (a voxel's interpolation) stay at level 0.
+    assert params.radius == pytest.approx(0.6)
+    cells = NodeCells(volume, 1.0, params, volume.world_bbox()[0] - params.radius)
+    rng = np.random.default_rng(0)
+    mask = (1 << 21) - 1
+    for x0, x1, size in ((-0.5, 15.5, 1), (21.2, 31.5, 8)):
+        points = rng.uniform([x0, -0.5, -0.5], [x1, 15.5, 15.5], (20000, 3))
+        keys = cells.keys(points)
+        corner = np.stack([keys >> 42, (keys >> 21) & mask, keys & mask], axis=1)
+        offset = (points - cells.origin) / cells.side - corner
+        assert (corner % size == 0).all() and offset.min() >= 0 and offset.max() < size
+        assert offset.max() > size - 0.05  # the cells are that large, not smaller
+
+    # Fewer nodes in the thin half, the same image: gather against volpath, side-lit
+    store = CacheStore(tmp_path)
+    scene = medium_scene(volume, density_scale=1.0, albedo=0.9, eye_dir=(0.0, 0.0, 1.0), size=32)
+    from cloudgraph.integrators.graph import GraphRenderer
+
+    ref = reference(scene, volume, spp=1024)
+    nodes, ratios = [], []
+    for level in (0, 3):
+        cache = precompute(scene, volume, "default", store, max_level=level)
+        thin = np.asarray(cache.graph.positions)[:, 0] > 21.1
+        nodes.append(np.count_nonzero(thin))
+        image = GraphRenderer(cache, volume, scene).render(scene.camera, 256, 3, "gather")
+        ratios.append(bias_metrics(image, ref)["mean_ratio"])
+    # Measured: 8,657 nodes in the thin half's level-3 blocks at one size, 18 (one a block) with
+    # levels; mean ratios 0.985 and 0.982.
+    assert nodes[1] * 20 < nodes[0]
+    assert abs(ratios[1] - 1.0) < 0.03 and abs(ratios[1] - ratios[0]) < 0.02
 
 
 # ------------------------------------------------------------------ 3. error against node radius
