@@ -14,7 +14,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .cache import CacheStore, graph_key, radiance_key, volume_id
+from .cache import (
+    CacheStore,
+    graph_key,
+    pack_graph,
+    pack_radiance,
+    radiance_key,
+    unpack_graph,
+    unpack_radiance,
+    volume_id,
+)
 from .errors import CacheError
 from .field import RadianceField, bake_field
 from .graph import BuildParams, Graph, GraphBuilder, build_graph, build_params, local_chunks, placed
@@ -93,6 +102,17 @@ def cache_keys(scene: Scene, volume: Volume, params: BuildParams) -> dict:
     return {"volume_id": vid, "graph_key": gkey, "radiance_key": rkey}
 
 
+def lighting_inputs(graph: Graph, scene: Scene, params: BuildParams) -> dict:
+    """What the direct-lighting chunks of a graph's nodes need (GraphBuilder's ``lighting``)."""
+    return {
+        "positions": graph.positions,
+        "light_dir": np.asarray(scene.light.unit_direction()),
+        "irradiance": np.asarray(scene.light.irradiance_rgb(), float),
+        "samples": np.array([LIGHTING["samples"]]),
+        "seed": np.array([params.seed]),
+    }
+
+
 def precompute(
     scene: Scene,
     volume: Volume,
@@ -123,23 +143,19 @@ def precompute(
         graph = store.load_graph(gkey)
         graph_reused = graph is not None
         if graph is None:
-            graph = build_graph(
+            built = build_graph(
                 volume, scene.medium.density_scale, params, lambda s, f: progress(s, 0.7 * f), chunks, builder
             )
+            graph_file = pack_graph(built)
+            graph = unpack_graph(graph_file)  # go on with what is stored: fresh and loaded render alike
+            graph.stats = built.stats  # with its stage times, which the file does not keep
     if found is None:
         # The direct light's chunks go out first: workers that share this precompute light the
         # nodes while the graph is written
         t0 = time.perf_counter()
-        inputs = {
-            "positions": graph.positions,
-            "light_dir": light_dir,
-            "irradiance": np.asarray(scene.light.irradiance_rgb(), float),
-            "samples": np.array([LIGHTING["samples"]]),
-            "seed": np.array([params.seed]),
-        }
-        lit = chunks(builder, "lighting", inputs)
+        lit = chunks(builder, "lighting", lighting_inputs(graph, scene, params))
     if not graph_reused:
-        store.save_graph(gkey, graph)
+        store.save_graph(gkey, graph_file)
     if found is not None:
         (radiance, radiance_gather), rstats = found
     else:
@@ -159,14 +175,15 @@ def precompute(
         else:
             L_gather = transport(C, L_d, albedo, depth - 1, LIGHTING["tol"], cancelled=still_wanted)[0]
         t_transport = time.perf_counter() - t0
-        radiance, radiance_gather = L.astype(np.float32), L_gather.astype(np.float32)
+        radiance_file = pack_radiance(L, L_gather)
+        radiance, radiance_gather = unpack_radiance(radiance_file)
         rstats = {
             **graph.stats,  # kept with the radiance, so that a reused cache needs no graph read
             "lighting_s": round(t_light, 3),
             "transport_s": round(t_transport, 3),
             "transport_iterations": iterations,
         }
-        store.save_radiance(rkey, radiance, radiance_gather, rstats)
+        store.save_radiance(rkey, radiance_file, rstats)
     if found_field is not None:
         field, fstats = RadianceField.decode(found_field), {}
     else:

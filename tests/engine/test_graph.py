@@ -223,14 +223,22 @@ def test_changing_albedo_reuses_the_graph_and_recomputes_only_the_radiance(varia
     lit = bright.radiance > 0
     assert lit.mean() > 0.9
     assert np.all(dark.radiance[lit] < bright.radiance[lit]) and np.all(dark.radiance[~lit] == 0)
-    # and exactly what the transport equation gives: the direct radiance, recovered from the
-    # bright solution as L_d = (I - 0.9 C) L, solved again with 0.6 (unbounded depth). The series
-    # stops once a product adds under 1e-5 of the total; measured deviation 1.7e-5 of the largest.
-    C = sp.csc_matrix(bright.graph.collision_matrix())
+    # and exactly what the transport equation gives: the nodes' direct light (the same chunks
+    # again), solved with a direct sparse solver. The solver stops at 1e-5 of the total and the
+    # file keeps 8 significant bits (0.4 %); measured: 0.21 % of the largest value, 0.38 % at most
+    # relative.
+    from cloudgraph.graph import GraphBuilder, build_params, local_chunks, placed
+    from cloudgraph.precompute import lighting_inputs
+
+    scene, params = medium_scene(volume, 0.5, albedo=0.6), build_params(volume, 0.5, "draft")
+    lit = local_chunks(
+        GraphBuilder(volume, 0.5, params), "lighting", lighting_inputs(dark.graph, scene, params)
+    )
+    L_d = placed(lit, dark.graph.n_nodes, 3, np.float64)
+    C = sp.csc_matrix(dark.graph.collision_matrix())
     eye = sp.identity(C.shape[0], format="csc")
-    L_d = (eye - 0.9 * C) @ bright.radiance.astype(np.float64)
     expected = spla.splu(eye - 0.6 * C).solve(L_d)
-    np.testing.assert_allclose(dark.radiance, expected, rtol=1e-3, atol=1e-4 * expected.max())
+    np.testing.assert_allclose(dark.radiance, expected, rtol=4e-3, atol=1e-4 * expected.max())
 
 
 # ------------------------------------------------------------------ 5. determinism
@@ -259,15 +267,32 @@ def test_a_fixed_seed_gives_identical_caches_in_separate_stores(variant, tmp_pat
     np.testing.assert_array_equal(stored.out_samples, ga.out_samples)
 
 
-def test_the_graph_file_is_compact_and_renders_read_only_its_nodes(sphere, monkeypatch):
+def test_the_graph_file_is_compact_and_exact_where_transport_needs_it(sphere, monkeypatch):
+    from cloudgraph.cache import pack_graph, pack_radiance, unpack_graph, unpack_radiance
+    from cloudgraph.graph import build_graph, build_params
     from cloudgraph.integrators.graph import GraphRenderer
 
     cache, volume, scene = sphere["cache"], sphere["volume"], sphere["scene"]
     store, g = cache.store, cache.graph
-    with np.load(store.graph_path(cache.keys["graph_key"])) as z:
-        assert z["data"].dtype == np.min_scalar_type(int(g.counts.data.max())) != np.int64
-        assert z["out_samples"].dtype == np.min_scalar_type(int(g.out_samples.max()))
-        assert z["indices"].dtype == np.uint32
+    # Under 2 bytes an edge, nodes included (measured 1.75); the first format took 12 an edge and
+    # 32 a node
+    assert store.graph_path(cache.keys["graph_key"]).stat().st_size < 2.0 * g.counts.nnz
+    # Counts and samples exact; positions to half a step of 1/65535 of the nodes' box; search
+    # ranges to float16 (2^-11)
+    built = build_graph(volume, sphere["sigma"], build_params(volume, sphere["sigma"], "draft"))
+    back = unpack_graph(pack_graph(built))
+    assert (back.counts != built.counts).nnz == 0 and back.counts.nnz == built.counts.nnz > 10 * g.n_nodes
+    np.testing.assert_array_equal(back.out_samples, built.out_samples)
+    step = (built.positions.max(axis=0) - built.positions.min(axis=0)) / 65535
+    assert np.all(np.abs(back.positions - built.positions) <= 0.5 * step * (1 + 1e-3))
+    np.testing.assert_allclose(back.search_radius, built.search_radius, rtol=2.0**-11)
+    # Radiance to 8 significant bits at any magnitude, and kept once where both arrays are one
+    L = np.random.default_rng(1).lognormal(-8.0, 4.0, (1000, 3)).astype(np.float32)
+    packed = pack_radiance(L, L)
+    assert list(packed) == ["radiance"]
+    again, gather = unpack_radiance(packed)
+    assert gather is again and np.all(np.abs(again / L - 1) <= 2.0**-8)
+
     # A Monte Carlo render of a cached scene reads the node positions and ranges, not the counts
     again = precompute(scene, volume, "draft", store)
     assert again.stats["radiance_reused"] and again._graph is None
