@@ -384,7 +384,27 @@ class NodeTable:
         self.kept = np.zeros((0, MEMBERS_KEPT, 3), np.float32)
         self.priority = np.zeros((0, MEMBERS_KEPT))
         self.out = np.zeros(0, np.int64)
-        self.counts = sp.csr_matrix((0, 0), dtype=np.int64)
+        self._counts = sp.csr_matrix((0, 0), dtype=np.int64)
+        self._edges: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # merged, not yet summed
+        self._pending = 0
+
+    @property
+    def counts(self) -> sp.csr_matrix:
+        """(N, N) edge counts of everything merged so far."""
+        self._sum_edges()
+        return self._counts
+
+    def _sum_edges(self) -> None:
+        # Merged edges wait in a list and are summed when asked for, or when as many wait as
+        # are summed (memory stays within twice the edges): adding each chunk's to the sum
+        # would copy every edge at every merge.
+        n = len(self)
+        waiting = [np.concatenate(a) for a in zip(*self._edges, strict=True)] if self._edges else []
+        self._counts.resize((n, n))
+        if waiting:
+            rows, cols, values = waiting
+            self._counts = self._counts + sp.csr_matrix((values, (rows, cols)), shape=(n, n))
+        self._edges, self._pending = [], 0
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -403,14 +423,14 @@ class NodeTable:
         if len(new):
             n, m = len(self), len(new)
             self.keys = np.concatenate([self.keys, new])
-            self.order = np.argsort(self.keys, kind="stable")
-            self.sorted_keys = self.keys[self.order]
+            at = np.searchsorted(self.sorted_keys, new)  # both sorted: insert, no new sort
+            self.order = np.insert(self.order, at, np.arange(n, n + m))
+            self.sorted_keys = np.insert(self.sorted_keys, at, new)
             self.count = np.concatenate([self.count, np.zeros(m, np.int64)])
             self.sum = np.concatenate([self.sum, np.zeros((m, 3), np.int64)])
             self.kept = np.concatenate([self.kept, np.zeros((m, MEMBERS_KEPT, 3), np.float32)])
             self.priority = np.concatenate([self.priority, np.full((m, MEMBERS_KEPT), np.inf)])
             self.out = np.concatenate([self.out, np.zeros(m, np.int64)])
-            self.counts.resize((n + m, n + m))
         return self.order[np.searchsorted(self.sorted_keys, keys)]
 
     def merge(self, part: tuple[np.ndarray, ...]) -> None:
@@ -440,8 +460,10 @@ class NodeTable:
         self.kept[touched] = np.take_along_axis(pts, low[..., None], axis=1)
         # Samples and edge counts
         self.out[src_node] += src_count
-        n = len(self)
-        self.counts = self.counts + sp.csr_matrix((e_count, (src_node[e_src], node[e_dst])), shape=(n, n))
+        self._edges.append((src_node[e_src], node[e_dst], e_count))
+        self._pending += len(e_count)
+        if self._pending > max(1 << 22, self._counts.nnz):
+            self._sum_edges()
 
 
 def _lowest(group: np.ndarray, priority: np.ndarray) -> np.ndarray:
