@@ -193,7 +193,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="accuracy only: converged gather and field, 4096-spp references",
     )
     b.add_argument(
-        "--scene", action="append", help="only these scenes (repeatable; 'holdout' and 'dense' are never default)"
+        "--scene",
+        action="append",
+        help="only these scenes (repeatable; 'holdout' and 'dense' are never default)",
     )
     b.add_argument("--out-dir", default="bench/results")
     b.set_defaults(func=_cmd_bench)

@@ -193,3 +193,15 @@ def test_the_field_file_has_the_documented_layout(sphere, tmp_path):
     # and what the store keeps decodes to the same field
     stored = RadianceField.decode(CacheStore(tmp_path).save_field("k", cache.field.encode()).read_bytes())
     np.testing.assert_array_equal(stored.tau_light, cache.field.tau_light)
+
+
+def test_points_no_node_reaches_take_their_nearest_nodes_value():
+    from cloudgraph.field import fill_unreached
+
+    nodes = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]])
+    node_G = np.array([[1.0, 1.0, 1.0], [2.0, 0.5, 0.0]], np.float32)
+    points = np.array([[1.0, 0.0, 0.0], [5.0, 5.0, 5.0], [9.0, 3.0, 0.0]])
+    G = np.array([[0, 0, 0], [5, 5, 5], [0, 0, 0]], np.float32)  # the middle point was reached
+    np.testing.assert_array_equal(
+        fill_unreached(G, points, nodes, node_G), [[1, 1, 1], [5, 5, 5], [2, 0.5, 0]]
+    )
