@@ -283,7 +283,7 @@ class NodeCells:
     so that every point of a cube is within r of its centre, grown where the medium is thin.
 
     The node radius is a fraction of the free path (:data:`PRESETS`), and the free path varies
-    through a cloud: cubes of ``2^MAX_LEVEL`` cells a side (blocks) take cells 2^l times as
+    through a cloud: cubes of ``2^max_level`` cells a side (blocks) take cells 2^l times as
     large, with l the largest level whose radius r 2^l is still at most ``radius_mfp`` free
     paths at the block's densest point (σ_t dilated by a voxel, as trilinear interpolation reads
     it). Dense blocks keep r; thin smoke gets nodes of the same size in free paths as the rest.
