@@ -291,6 +291,12 @@ def _load_vol(path: Path) -> Volume:
     return Volume(_clean(path, density), (0, 0, 0), m, "density")
 
 
+def voxel_points(volume: Volume, ijk: np.ndarray) -> np.ndarray:
+    """(M, 3) world points of (M, 3) voxel coordinates (density[i, j, k] sits at (i, j, k))."""
+    index = ijk + np.asarray(volume.index_min)
+    return index @ volume.index_to_world[:3, :3].T + volume.index_to_world[:3, 3]
+
+
 def write_vol(volume: Volume, path: str | Path) -> None:
     """Writes an axis-aligned volume as a Mitsuba .vol file (its bbox is the medium's extent)."""
     lo, hi = volume.world_bbox()

@@ -135,7 +135,8 @@ def two_density_box():
 
 
 def test_nodes_grow_with_the_free_path_where_the_medium_is_thin(variant, tmp_path):
-    from cloudgraph.graph import NodeCells, build_params
+    from cloudgraph.graph import build_params
+    from cloudgraph.nodes import NodeCells
 
     volume = two_density_box()
     params = build_params(volume, 1.0, "default", max_level=3)

@@ -1,0 +1,245 @@
+"""Node grouping (thesis §4.3.1): the node cell a collision joins (:class:`NodeCells`), and the
+nodes as a build finds them (:class:`NodeTable`), fed by chunk reductions (:func:`reduce_chunk`).
+Everything kept is a sum or a minimum, so a graph is the same bytes however its work is cut or
+spread over workers (``GraphBuilder`` in graph.py)."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.ndimage import maximum_filter
+
+from .errors import VolumeError
+from .volume import Volume, voxel_points
+
+if TYPE_CHECKING:
+    from .graph import BuildParams
+
+
+class NodeCells:
+    """Node cells (§4.3.1): cubes of side 2r/sqrt(3) from ``origin`` (a corner below every point),
+    so that every point of a cube is within r of its centre, grown where the medium is thin.
+
+    The node radius is a fraction of the free path (:data:`PRESETS`), and the free path varies
+    through a cloud: cubes of ``2^max_level`` cells a side (blocks) take cells 2^l times as
+    large, with l the largest level whose radius r 2^l is still at most ``radius_mfp`` free
+    paths at the block's densest point (σ_t dilated by a voxel, as trilinear interpolation reads
+    it). Dense blocks keep r; thin smoke gets nodes of the same size in free paths as the rest.
+    Levels are whole blocks, so cells of different levels never overlap, and a cell's key is the
+    lowest base cell it covers.
+    """
+
+    def __init__(self, volume: Volume, density_scale: float, params: BuildParams, origin: np.ndarray):
+        self.origin, self.side = np.asarray(origin, float), 2.0 * params.radius / np.sqrt(3.0)
+        self.top = params.max_level
+        self.levels = np.zeros((1, 1, 1), np.int64)
+        if self.top == 0:
+            return
+        block = self.side * 2**self.top
+        dims = np.floor((volume.world_bbox()[1] + params.radius - self.origin) / block).astype(np.int64) + 1
+        sigma = maximum_filter(volume.density, size=3, mode="constant").ravel() * float(density_scale)
+        with np.errstate(divide="ignore"):  # each voxel's own level (empty: the top one)
+            own = np.floor(np.log2(np.maximum(params.radius_mfp / sigma / params.radius, 1.0)) + 1e-9)
+        own = np.minimum(own, self.top).astype(np.int64)
+        n, (nx, ny, nz) = int(np.prod(dims)), volume.shape
+        below = np.zeros((self.top, n), bool)  # below[l]: the block holds a voxel of level <= l
+        m = volume.index_to_world[:3, :3] / block  # voxel steps in blocks
+        first = (voxel_points(volume, np.zeros((1, 3)))[0] - self.origin) / block  # voxel (0, 0, 0)
+        j, k = np.arange(ny)[None, :, None], np.arange(nz)[None, None, :]
+        step = max(1, (1 << 22) // (ny * nz))  # slabs of i: memory stays small for large volumes
+        for a in range(0, nx, step):
+            i = np.arange(a, min(a + step, nx))[:, None, None]
+            ids = 0  # the block of each voxel, axis by axis
+            for axis in range(3):
+                b = np.floor(first[axis] + m[axis, 0] * i + m[axis, 1] * j + m[axis, 2] * k).astype(np.int64)
+                ids = ids * dims[axis] + np.clip(b, 0, dims[axis] - 1)
+            ids, lv = ids.ravel(), own[a * ny * nz : (a + len(i)) * ny * nz]
+            for level in range(self.top):
+                below[level] |= np.bincount(ids[lv <= level], minlength=n) > 0
+        # a block's level is its densest voxel's: the lowest level any of its voxels has
+        self.levels = np.where(below.any(axis=0), below.argmax(axis=0), self.top).reshape(dims)
+
+    def keys(self, points: np.ndarray) -> np.ndarray:
+        """(M,) int64 cell keys of (M, 3) world points: the lowest base cell of their cell."""
+        cell = np.floor((points - self.origin) / self.side).astype(np.int64)
+        if cell.size and (cell.min() < 0 or cell.max() >= 1 << 21):
+            raise VolumeError(
+                "the medium spans more than 2^21 node cells along an axis; resample the volume coarser"
+            )
+        block = np.minimum(cell >> self.top, np.array(self.levels.shape) - 1)
+        level = self.levels[block[:, 0], block[:, 1], block[:, 2]][:, None]
+        cell = (cell >> level) << level
+        return (cell[:, 0] << 42) | (cell[:, 1] << 21) | cell[:, 2]
+
+
+#: Collisions kept per node (a uniform sample of all of them, by random priority) as the starting
+#: points of its reinforcement flights.
+MEMBERS_KEPT = 8
+
+
+def uniform_hash(seed: int, stream: int, index: np.ndarray) -> np.ndarray:
+    """Numbers uniform in [0, 1) from (seed, stream, index) by splitmix64: each collision's own,
+    whichever chunk it was traced in."""
+    mix = (int(seed) * 0x9E3779B97F4A7C15 + int(stream) * 0xD1B54A32D192ED03 + 1) % 2**64
+    x = np.asarray(index).astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(mix)
+    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    x = x ^ (x >> np.uint64(31))
+    return (x >> np.uint64(11)).astype(np.float64) / 2.0**53
+
+
+#: Collision positions are summed in fixed point, 2^-20 node radii, so that sums in any order are
+#: equal (exact in float64 up to 2^53: 2^21 cells a side times 2^12 collisions a node).
+FIXED_POINT = 2.0**20
+
+
+class NodeTable:
+    """The nodes as they are being found, in the order found: per node its cell key, the number
+    and sum of its collisions, a uniform sample of MEMBERS_KEPT of them (the lowest random
+    priorities), its outgoing samples, and the edge counts. Collisions and samples are merged in
+    (:meth:`merge`) and then dropped, so memory grows with the nodes, not with the samples.
+    Everything kept is a sum or a minimum, so the table is the same whatever the order and the
+    cut of the merges."""
+
+    def __init__(self, origin: np.ndarray, radius: float):
+        self.origin, self.unit = np.asarray(origin, float), float(radius) / FIXED_POINT
+        self.keys = np.zeros(0, np.int64)
+        self.order = np.zeros(0, np.int64)  # node indices sorted by key
+        self.sorted_keys = np.zeros(0, np.int64)  # keys[order]
+        self.count = np.zeros(0, np.int64)
+        self.sum = np.zeros((0, 3), np.int64)
+        self.kept = np.zeros((0, MEMBERS_KEPT, 3), np.float32)
+        self.priority = np.zeros((0, MEMBERS_KEPT))
+        self.out = np.zeros(0, np.int64)
+        self._counts = sp.csr_matrix((0, 0), dtype=np.int64)
+        self._edges: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # merged, not yet summed
+        self._pending = 0
+
+    @property
+    def counts(self) -> sp.csr_matrix:
+        """(N, N) edge counts of everything merged so far."""
+        self._sum_edges()
+        return self._counts
+
+    def _sum_edges(self) -> None:
+        # Merged edges wait in a list and are summed when asked for, or when as many wait as
+        # are summed (memory stays within twice the edges): adding each chunk's to the sum
+        # would copy every edge at every merge.
+        n = len(self)
+        waiting = [np.concatenate(a) for a in zip(*self._edges, strict=True)] if self._edges else []
+        self._counts.resize((n, n))
+        if waiting:
+            rows, cols, values = waiting
+            self._counts = self._counts + sp.csr_matrix((values, (rows, cols)), shape=(n, n))
+        self._edges, self._pending = [], 0
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def means(self) -> np.ndarray:
+        """(N, 3) the mean of each node's collisions, world units (from the fixed-point sums)."""
+        return self.origin + self.sum * self.unit / self.count[:, None]
+
+    def index(self, keys: np.ndarray) -> np.ndarray:
+        """Node indices of cell keys; cells without a node become new nodes."""
+        pos = np.searchsorted(self.sorted_keys, keys)
+        found = np.zeros(len(keys), bool)
+        inside = pos < len(self.order)
+        found[inside] = self.sorted_keys[pos[inside]] == keys[inside]
+        new = np.unique(keys[~found])
+        if len(new):
+            n, m = len(self), len(new)
+            self.keys = np.concatenate([self.keys, new])
+            at = np.searchsorted(self.sorted_keys, new)  # both sorted: insert, no new sort
+            self.order = np.insert(self.order, at, np.arange(n, n + m))
+            self.sorted_keys = np.insert(self.sorted_keys, at, new)
+            self.count = np.concatenate([self.count, np.zeros(m, np.int64)])
+            self.sum = np.concatenate([self.sum, np.zeros((m, 3), np.int64)])
+            self.kept = np.concatenate([self.kept, np.zeros((m, MEMBERS_KEPT, 3), np.float32)])
+            self.priority = np.concatenate([self.priority, np.full((m, MEMBERS_KEPT), np.inf)])
+            self.out = np.concatenate([self.out, np.zeros(m, np.int64)])
+        return self.order[np.searchsorted(self.sorted_keys, keys)]
+
+    def merge(self, part: tuple[np.ndarray, ...]) -> None:
+        """Adds a chunk's :func:`reduce_chunk` (per cell: collisions, their fixed-point sum and
+        lowest priorities; outgoing samples per start cell; edge counts)."""
+        cells, count, sums, kept_cell, kept_points, kept_pri, src, src_count, e_src, e_dst, e_count = part
+        node, src_node = self.index(cells), self.index(src)
+        self.count[node] += count
+        self.sum[node] += sums
+        # The kept sample of each node touched: its MEMBERS_KEPT lowest priorities so far. Kept
+        # priorities are in ascending order, so a collision above a node's last cannot enter;
+        # a chunk brings at most MEMBERS_KEPT a node, so each node's row of kept and entering
+        # ones (2 x MEMBERS_KEPT, padded with inf) is sorted on its own.
+        cand = node[kept_cell]
+        enter = kept_pri < self.priority[cand, -1]
+        cand, priority, points = cand[enter], kept_pri[enter], kept_points[enter]
+        touched, row = np.unique(cand, return_inverse=True)
+        by_row = np.argsort(row, kind="stable")
+        slot = np.empty(len(row), np.int64)
+        slot[by_row] = MEMBERS_KEPT + np.arange(len(row)) - np.searchsorted(row[by_row], row[by_row])
+        pri = np.full((len(touched), 2 * MEMBERS_KEPT), np.inf)
+        pts = np.zeros((len(touched), 2 * MEMBERS_KEPT, 3), np.float32)
+        pri[:, :MEMBERS_KEPT], pts[:, :MEMBERS_KEPT] = self.priority[touched], self.kept[touched]
+        pri[row, slot], pts[row, slot] = priority, points
+        low = np.argsort(pri, axis=1, kind="stable")[:, :MEMBERS_KEPT]
+        self.priority[touched] = np.take_along_axis(pri, low, axis=1)
+        self.kept[touched] = np.take_along_axis(pts, low[..., None], axis=1)
+        # Samples and edge counts
+        self.out[src_node] += src_count
+        self._edges.append((src_node[e_src], node[e_dst], e_count))
+        self._pending += len(e_count)
+        if self._pending > max(1 << 22, self._counts.nnz):
+            self._sum_edges()
+
+
+def _lowest(group: np.ndarray, priority: np.ndarray) -> np.ndarray:
+    """The entries of the MEMBERS_KEPT lowest priorities of each group (non-negative integers)."""
+    # A group of at most MEMBERS_KEPT keeps all; of a larger one, only entries below its
+    # threshold (4 x MEMBERS_KEPT / its size) are sorted where at least MEMBERS_KEPT are below
+    # it, which then holds its lowest; the whole group elsewhere. The same entries as sorting
+    # all, in a fraction of the time.
+    size = np.bincount(group)
+    small = size[group] <= MEMBERS_KEPT
+    below = priority < np.minimum(1.0, 4.0 * MEMBERS_KEPT / np.maximum(size, 1))[group]
+    enough = np.bincount(group[below], minlength=len(size)) >= MEMBERS_KEPT
+    cand = np.flatnonzero(~small & (below | ~enough[group]))
+    by_priority = cand[np.argsort(priority[cand], kind="stable")]
+    order = by_priority[np.argsort(group[by_priority], kind="stable")]  # as np.lexsort, faster
+    starts = np.flatnonzero(np.diff(group[order], prepend=-1))
+    rank = np.arange(len(order)) - np.repeat(starts, np.diff(np.append(starts, len(order))))
+    return np.sort(np.concatenate([np.flatnonzero(small), order[rank < MEMBERS_KEPT]]))
+
+
+def reduce_chunk(keys, points, priority, src, dst, origin, radius) -> tuple[np.ndarray, ...]:
+    """A chunk's collisions ((M,) cell keys, (M, 3) world points, (M,) priorities in [0, 1)) and
+    outgoing samples ((S,) cell keys of their start, (S,) of their collision or -1: escaped),
+    reduced per cell and per edge where they were traced, so that what is sent and merged grows
+    with the cells a chunk touches, not with its samples. Merging the reductions gives the table
+    that merging the samples would (sums of integers, lowest priorities). Kept collisions and
+    edges refer to cells by their index in ``cells`` (edge starts: in ``src``)."""
+    cells, inv, count = np.unique(keys, return_inverse=True, return_counts=True)
+    fixed = np.round((points - origin) / (radius / FIXED_POINT))
+    sums = np.stack([np.bincount(inv, fixed[:, i], len(cells)) for i in range(3)], axis=1).astype(np.int64)
+    keep = _lowest(inv, priority)
+    src_cells, src_inv, src_count = np.unique(src, return_inverse=True, return_counts=True)
+    # Edges as (start cell, collision cell) indices into src_cells and cells, counted once each
+    hit = dst >= 0
+    a, b = src_inv[hit], np.searchsorted(cells, dst[hit])
+    edge = a * len(cells) + b
+    edges, e_count = np.unique(edge, return_counts=True)
+    return (
+        cells,
+        count.astype(np.int64),
+        sums,
+        inv[keep],
+        points[keep].astype(np.float32),
+        priority[keep],
+        src_cells,
+        src_count.astype(np.int64),
+        edges // len(cells),
+        edges % len(cells),
+        e_count.astype(np.int64),
+    )
