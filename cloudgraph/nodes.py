@@ -22,7 +22,7 @@ class NodeCells:
     """Node cells (§4.3.1): cubes of side 2r/sqrt(3) from ``origin`` (a corner below every point),
     so that every point of a cube is within r of its centre, grown where the medium is thin.
 
-    The node radius is a fraction of the free path (:data:`~cloudgraph.graph.PRESETS`), and the free path varies
+    The node radius is a fraction of the free path (graph.PRESETS), and the free path varies
     through a cloud: cubes of ``2^max_level`` cells a side (blocks) take cells 2^l times as
     large, with l the largest level whose radius r 2^l is still at most ``radius_mfp`` free
     paths at the block's densest point (σ_t dilated by a voxel, as trilinear interpolation reads
