@@ -30,6 +30,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import asdict, dataclass, field
+from functools import cached_property
 
 import drjit as dr
 import mitsuba as mi
@@ -298,10 +299,15 @@ class GraphBuilder:
     """
 
     def __init__(self, volume: Volume, density_scale: float, params: BuildParams):
-        self.volume, self.params = volume, params
+        self.volume, self.params, self.density_scale = volume, params, density_scale
         self.field = DensityField.from_volume(volume, density_scale)
         self.origin = volume.world_bbox()[0] - params.radius
-        self.cells = NodeCells(volume, density_scale, params, self.origin)
+
+    @cached_property
+    def cells(self) -> NodeCells:
+        """The node cells, made when a stage first needs them: a relight's lighting and field
+        stages, here or on a helper, never do (their levels read every voxel)."""
+        return NodeCells(self.volume, self.density_scale, self.params, self.origin)
 
     def n_chunks(self, stage: str, inputs: dict | None = None) -> int:
         if stage == "trace":

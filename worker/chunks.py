@@ -8,7 +8,7 @@ does not need the stage's results, so that helpers start first), while helper jo
 front of the queue, one per other worker) take tasks from the same list and leave their results
 in the run folder (:func:`help_run`). A task is claimed atomically with a lease that its holder
 renews every LEASE_S / 3 seconds; the task of a killed worker (its lease lapsed) goes back on the
-list. The coordinator merges results as they come: :class:`~cloudgraph.graph.NodeTable` merges
+list. The coordinator merges results as they come: :class:`~cloudgraph.nodes.NodeTable` merges
 commute, so the graph is the same bytes whoever ran which chunk.
 
 Keys, under ``cloudgraph:run:<run>:``:
