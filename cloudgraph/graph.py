@@ -29,6 +29,8 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from functools import cached_property
 
@@ -281,6 +283,8 @@ GRAPH_LIGHTS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]
 #: sizes: the graph does not depend on how the work is cut.
 CHUNK_PATHS = 1 << 14
 CHUNK_FLIGHTS = 1 << 18
+#: Chunks run ahead on threads while the last is merged (local_chunks)
+LOCAL_THREADS = 2
 
 
 class GraphBuilder:
@@ -384,9 +388,17 @@ class GraphBuilder:
 
 
 def local_chunks(builder: GraphBuilder, stage: str, inputs: dict | None = None):
-    """Runs a stage's chunks one after another in this process (the default ``chunks``)."""
-    for i in range(builder.n_chunks(stage, inputs)):
-        yield builder.chunk(stage, i, inputs)
+    """Runs a stage's chunks in this process (the default ``chunks``), in order, on threads
+    while the caller merges the ones before: tracing and reducing chunks (Dr.Jit, numpy sorts)
+    overlaps merging."""
+    n = builder.n_chunks(stage, inputs)
+    with ThreadPoolExecutor(LOCAL_THREADS) as pool:
+        ahead = deque(pool.submit(builder.chunk, stage, i, inputs) for i in range(min(n, LOCAL_THREADS)))
+        for i in range(n):
+            result = ahead.popleft().result()
+            if i + LOCAL_THREADS < n:
+                ahead.append(pool.submit(builder.chunk, stage, i + LOCAL_THREADS, inputs))
+            yield result
 
 
 def placed(results, n: int, channels: int, dtype=np.float32) -> np.ndarray:

@@ -170,29 +170,35 @@ class NodeTable:
         self.count[node] += count
         self.sum[node] += sums
         # The kept sample of each node touched: its MEMBERS_KEPT lowest priorities so far. Kept
-        # priorities are in ascending order, so a collision above a node's last cannot enter;
-        # a chunk brings at most MEMBERS_KEPT a node, so each node's row of kept and entering
-        # ones (2 x MEMBERS_KEPT, padded with inf) is sorted on its own.
+        # priorities are in ascending order, so a collision above a node's last cannot enter. A
+        # chunk brings at most MEMBERS_KEPT a cell, grouped by cell (:func:`reduce_chunk`).
         cand = node[kept_cell]
         enter = kept_pri < self.priority[cand, -1]
         cand, priority, points = cand[enter], kept_pri[enter], kept_points[enter]
-        touched, row = np.unique(cand, return_inverse=True)
-        by_row = np.argsort(row, kind="stable")
-        slot = np.empty(len(row), np.int64)
-        slot[by_row] = MEMBERS_KEPT + np.arange(len(row)) - np.searchsorted(row[by_row], row[by_row])
-        pri = np.full((len(touched), 2 * MEMBERS_KEPT), np.inf)
-        pts = np.zeros((len(touched), 2 * MEMBERS_KEPT, 3), np.float32)
-        pri[:, :MEMBERS_KEPT], pts[:, :MEMBERS_KEPT] = self.priority[touched], self.kept[touched]
-        pri[row, slot], pts[row, slot] = priority, points
-        low = np.argsort(pri, axis=1, kind="stable")[:, :MEMBERS_KEPT]
-        self.priority[touched] = np.take_along_axis(pri, low, axis=1)
-        self.kept[touched] = np.take_along_axis(pts, low[..., None], axis=1)
+        if len(cand):
+            self._keep(cand, priority, points)
         # Samples and edge counts
         self.out[src_node] += src_count
         self._edges.append((src_node[e_src], node[e_dst], e_count))
         self._pending += len(e_count)
         if self._pending > max(1 << 22, self._counts.nnz):
             self._sum_edges()
+
+    def _keep(self, cand: np.ndarray, priority: np.ndarray, points: np.ndarray) -> None:
+        # Each touched node's row of kept and entering collisions (2 x MEMBERS_KEPT, padded with
+        # inf) is sorted on its own; entering ones come grouped by node.
+        first = np.flatnonzero(np.diff(cand, prepend=-1))  # each touched node's first one
+        touched, m = cand[first], len(cand)
+        row = np.repeat(np.arange(len(first)), np.diff(np.append(first, m)))
+        pri = np.full((len(touched), 2 * MEMBERS_KEPT), np.inf)
+        pri[:, :MEMBERS_KEPT] = self.priority[touched]
+        pri[row, MEMBERS_KEPT + np.arange(m) - first[row]] = priority
+        low = np.argsort(pri, axis=1, kind="stable")[:, :MEMBERS_KEPT]
+        # slot j < MEMBERS_KEPT: the node's kept one j stays; else entering one first + j - M
+        stays = self.kept[touched[:, None], np.minimum(low, MEMBERS_KEPT - 1)]
+        enters = points[np.clip(first[:, None] + low - MEMBERS_KEPT, 0, m - 1)]
+        self.kept[touched] = np.where((low < MEMBERS_KEPT)[..., None], stays, enters)
+        self.priority[touched] = np.take_along_axis(pri, low, axis=1)
 
 
 def _lowest(group: np.ndarray, priority: np.ndarray) -> np.ndarray:
@@ -224,6 +230,7 @@ def reduce_chunk(keys, points, priority, src, dst, origin, radius) -> tuple[np.n
     fixed = np.round((points - origin) / (radius / FIXED_POINT))
     sums = np.stack([np.bincount(inv, fixed[:, i], len(cells)) for i in range(3)], axis=1).astype(np.int64)
     keep = _lowest(inv, priority)
+    keep = keep[np.argsort(inv[keep], kind="stable")]  # grouped by cell, as NodeTable.merge reads them
     src_cells, src_inv, src_count = np.unique(src, return_inverse=True, return_counts=True)
     # Edges as (start cell, collision cell) indices into src_cells and cells, counted once each
     hit = dst >= 0
