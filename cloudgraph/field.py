@@ -184,6 +184,57 @@ def unit_points(shape) -> np.ndarray:
 # ------------------------------------------------------------------ baking
 
 
+@dataclass
+class FieldPoints:
+    """The field grid of a medium: its ``shape`` (nx, ny, nz), sigma_t at its points (nz, ny,
+    nx), which points are baked (``near``, flat: within one voxel of some density; the rest stay
+    zero) and where those are (``points``, (M, 3) world), ``voxel`` its smallest world step.
+    Made once a process (``GraphBuilder.field_points``), from the medium alone."""
+
+    shape: tuple
+    sigma_t: np.ndarray
+    near: np.ndarray
+    points: np.ndarray
+    voxel: float
+
+    @classmethod
+    def of(cls, volume, medium: DensityField) -> FieldPoints:
+        u2w = np.asarray(volume.unit_to_world, float)
+        shape = field_shape(volume.shape)
+        nx, ny, nz = shape
+        units = unit_points(shape)
+        if shape == tuple(volume.shape):  # texel centres: the voxels, read as they are
+            density = np.ascontiguousarray(volume.density.transpose(2, 1, 0), np.float32)
+            sigma_t = density * np.float32(medium.scale)
+        else:
+            sigma_t = np.array(medium.sigma_t(_point3f(_to_world(u2w, units))), np.float32)
+            sigma_t = sigma_t.reshape(nz, ny, nx)
+        # Trilinear interpolation at any point of the medium reads 8 grid points, all within one
+        # voxel of a non-zero one
+        near = maximum_filter(sigma_t > 0, size=3, mode="constant").ravel()
+        points = _to_world(u2w, units[near]).astype(np.float32)
+        voxel = float((np.linalg.norm(u2w[:3, :3], axis=0) / np.asarray(shape)).min())
+        return cls(shape, sigma_t, near, points, voxel)
+
+
+def _to_world(u2w: np.ndarray, u: np.ndarray) -> np.ndarray:
+    return u @ u2w[:3, :3].T + u2w[:3, 3]
+
+
+def _point3f(w: np.ndarray) -> mi.Point3f:
+    return mi.Point3f(*(w[:, i].astype(np.float32) for i in range(3)))
+
+
+def march_light(builder, light_dir, chunks):
+    """Puts out the bake's light march (``field_tau`` chunks: the optical depth to the light from
+    every field point, Eq. 4.22 at a point, deterministic) and returns the iterator of its
+    results. It needs the medium and the light only, so a precompute puts it out before the
+    graph is written (precompute.py)."""
+    to_light = -np.asarray(light_dir, float) / np.linalg.norm(light_dir)
+    step = np.array([TAU_STEP * builder.field_points.voxel])
+    return chunks(builder, "field_tau", {"to_light": to_light, "step": step})
+
+
 def bake_field(
     builder,
     graph,
@@ -193,16 +244,18 @@ def bake_field(
     irradiance,
     radiance_key: str = "",
     chunks=None,
+    marched=None,
 ) -> tuple[RadianceField, dict]:
     """Bakes the field of a radiance cache (a variant must be set).
 
     Args:
         builder: the :class:`~cloudgraph.graph.GraphBuilder` of the graph (volume, medium, node
-            radius r, the Eq. 4.25 weight's floor).
+            radius r, the Eq. 4.25 weight's floor, the field's points).
         graph: the :class:`~cloudgraph.graph.Graph` (positions, search ranges, counts).
         radiance_gather: (N, 3) node radiance with one scattering event fewer (as ``gather``).
         albedo, irradiance: (3,); light_dir: (3,) direction the light travels.
         chunks: runs the marches' chunks (:func:`field_chunk`), as in ``build_graph``.
+        marched: the light march's results (:func:`march_light`), if already put out.
 
     Returns:
         (field, stats): stats hold the bake's seconds per part.
@@ -210,39 +263,15 @@ def bake_field(
     from .graph import local_chunks, placed
     from .integrators.graph import NodeGrid
 
-    volume, node_radius, medium = builder.volume, builder.params.radius, builder.field
+    volume, node_radius = builder.volume, builder.params.radius
     chunks = chunks or local_chunks
     t_start = time.perf_counter()
     u2w = np.asarray(volume.unit_to_world, float)
-    shape = field_shape(volume.shape)
+    fp = builder.field_points
+    shape, near, points, voxel = fp.shape, fp.near, fp.points, fp.voxel
     nx, ny, nz = shape
-
-    def to_world(u: np.ndarray) -> np.ndarray:
-        return u @ u2w[:3, :3].T + u2w[:3, 3]
-
-    def point3f(w: np.ndarray) -> mi.Point3f:
-        return mi.Point3f(*(w[:, i].astype(np.float32) for i in range(3)))
-
-    # sigma_t at the field points (the voxel values themselves when the grid is not coarsened)
-    units = unit_points(shape)
-    if shape == tuple(volume.shape):  # texel centres: the voxels, read as they are
-        density = np.ascontiguousarray(volume.density.transpose(2, 1, 0), np.float32)
-        sigma_t = density * np.float32(medium.scale)
-    else:
-        sigma_t = np.array(medium.sigma_t(point3f(to_world(units))), np.float32).reshape(nz, ny, nx)
-    # Only points next to some density matter: trilinear interpolation at any point of the medium
-    # reads 8 grid points, all within one voxel of a non-zero one. The rest stay zero.
-    near = maximum_filter(sigma_t > 0, size=3, mode="constant").ravel()
-    points = to_world(units[near])
-
-    # Single scattering: optical depth to the light from every field point (Eq. 4.22 at a point,
-    # deterministic). Step in world units: TAU_STEP of the smallest field voxel. Its chunks go
-    # out now and are collected after G below, which does not need them (workers that share the
-    # precompute march meanwhile).
-    voxel = float((np.linalg.norm(u2w[:3, :3], axis=0) / np.asarray(shape)).min())
     to_light = -np.asarray(light_dir, float) / np.linalg.norm(light_dir)
-    inputs = {"points": points.astype(np.float32), "to_light": to_light, "step": np.array([TAU_STEP * voxel])}
-    marched = chunks(builder, "field_tau", inputs)
+    marched = marched if marched is not None else march_light(builder, light_dir, chunks)
 
     # Multiple scattering, as ``gather`` computes it but on the grid: one more flight from the
     # grid point, to p'', where the graph's albedo L' stands in for the rest (Eq. 4.25):
@@ -253,7 +282,7 @@ def bake_field(
     t0 = time.perf_counter()
     node_G = radiance_gather * np.asarray(albedo, np.float32)[None, :]
     grid = NodeGrid.build(graph.positions, graph.search_radius, node_G)
-    G = grid.lookup(point3f(points), (0.05 * node_radius) ** 2, mi.Bool(True))
+    G = grid.lookup(_point3f(points), (0.05 * node_radius) ** 2, mi.Bool(True))
     dr.eval(G)  # one kernel for the three channels
     G = np.stack([np.array(c, np.float32) for c in (G.x, G.y, G.z)], axis=1)
     G = _scatter(near, fill_unreached(G, points, graph.positions, node_G), (nz, ny, nx, 3))
@@ -264,7 +293,7 @@ def bake_field(
         if ms_near.sum() <= MS_MAX_POINTS:
             break
         k += 1
-    q = to_world(unit_points(ms_shape)[ms_near])
+    q = _to_world(u2w, unit_points(ms_shape)[ms_near])
     inputs = {"points": q.astype(np.float32), "G": G, "step": np.array([MS_STEP * voxel])}
     gathered = chunks(builder, "field_ms", inputs)
     t_ms = time.perf_counter() - t0
@@ -287,7 +316,7 @@ def bake_field(
         "albedo": np.broadcast_to(np.asarray(albedo, float), (3,)).tolist(),
         "step": 0.5 * voxel,
     }
-    field = RadianceField(sigma_t, tau_light, radiance_ms, block_majorant(sigma_t), meta)
+    field = RadianceField(fp.sigma_t, tau_light, radiance_ms, block_majorant(fp.sigma_t), meta)
     stats = {
         "field_s": round(time.perf_counter() - t_start, 3),
         "field_tau_s": round(t_tau, 3),
@@ -301,14 +330,16 @@ def bake_field(
     return field, stats
 
 
-def field_chunk(medium: DensityField, stage: str, index: int, inputs: dict) -> tuple[np.ndarray, np.ndarray]:
-    """One chunk of the bake's marches, from its field points on (``points``, world units):
-    ``field_tau``, optical depth to the light (``to_light``); ``field_ms``, the multiple-
-    scattering gather through ``G``. Returns (first point, values): chunks may come back in any
-    order, from any worker (worker/chunks.py), and each gives the same values wherever it runs."""
-    size = _CHUNK[stage]
+def field_chunk(builder, stage: str, index: int, inputs: dict) -> tuple[np.ndarray, np.ndarray]:
+    """One chunk of the bake's marches: ``field_tau``, optical depth to the light (``to_light``)
+    from the field's points (``builder.field_points``); ``field_ms``, the multiple-scattering
+    gather through ``G`` from its ``points`` (world units). Returns (first point, values):
+    chunks may come back in any order, from any worker (worker/chunks.py), and each gives the
+    same values wherever it runs."""
+    size, medium = _CHUNK[stage], builder.field
     a, step = index * size, float(inputs["step"][0])
-    q = np.asarray(inputs["points"][a : a + size], np.float32)
+    q = builder.field_points.points if stage == "field_tau" else inputs["points"]
+    q = np.asarray(q[a : a + size], np.float32)
     if stage == "field_tau":
         to_light = mi.Vector3f(*(float(c) for c in inputs["to_light"]))
         tau = _optical_depth(medium, mi.Point3f(*(q[:, i] for i in range(3))), to_light, step)
@@ -318,8 +349,9 @@ def field_chunk(medium: DensityField, stage: str, index: int, inputs: dict) -> t
     return np.array([a]), values
 
 
-def field_chunks(stage: str, inputs: dict) -> int:
-    return -(-len(inputs["points"]) // _CHUNK[stage])
+def field_chunks(builder, stage: str, inputs: dict) -> int:
+    points = builder.field_points.points if stage == "field_tau" else inputs["points"]
+    return -(-len(points) // _CHUNK[stage])
 
 
 def _scatter(mask: np.ndarray, values: np.ndarray, shape) -> np.ndarray:

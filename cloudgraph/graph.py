@@ -302,10 +302,22 @@ class GraphBuilder:
     field bake's marches (``field_tau``, ``field_ms``).
     """
 
+    #: Stages put out long before their results are needed (the field's light march, at the start
+    #: of a precompute): workers that share a precompute run them when no other stage has work.
+    late_stages = frozenset({"field_tau"})
+
     def __init__(self, volume: Volume, density_scale: float, params: BuildParams):
         self.volume, self.params, self.density_scale = volume, params, density_scale
         self.field = DensityField.from_volume(volume, density_scale)
         self.origin = volume.world_bbox()[0] - params.radius
+
+    @cached_property
+    def field_points(self):
+        """The radiance field's grid points (:class:`~cloudgraph.field.FieldPoints`), made when a
+        field stage first needs them."""
+        from .field import FieldPoints
+
+        return FieldPoints.of(self.volume, self.field)
 
     @cached_property
     def cells(self) -> NodeCells:
@@ -324,7 +336,7 @@ class GraphBuilder:
             return -(-len(inputs["positions"]) // LIGHTING_CHUNK)
         from .field import field_chunks
 
-        return field_chunks(stage, inputs)
+        return field_chunks(self, stage, inputs)
 
     def chunk(self, stage: str, index: int, inputs: dict | None = None) -> tuple[np.ndarray, ...]:
         """One chunk's results: collisions and samples reduced (:func:`reduce_chunk`), or
@@ -340,7 +352,7 @@ class GraphBuilder:
         if stage in ("field_tau", "field_ms"):
             from .field import field_chunk
 
-            return field_chunk(self.field, stage, index, inputs)
+            return field_chunk(self, stage, index, inputs)
         raise ValueError(f"unknown precompute stage {stage!r}")
 
     def _trace(self, first: int) -> tuple[np.ndarray, ...]:
@@ -359,9 +371,10 @@ class GraphBuilder:
         keys[valid] = self.cells.keys(points)
         has_next = k + 1 < n_col[:, None]
         escaped = (k + 1 == n_col[:, None]) & (n_col[:, None] < p.max_collisions)
-        succ = np.concatenate([keys[:, 1:], np.full((n, 1), -1, np.int64)], axis=1)
         has_out = has_next | escaped
         priority = uniform_hash(p.seed, 0, ((first + np.arange(n))[:, None] * p.max_collisions + k)[valid])
+        # a path's collisions are consecutive among the valid ones: the next is one on
+        succ = np.cumsum(valid.ravel()).reshape(valid.shape)
         src, dst = keys[has_out], np.where(has_next, succ, -1)[has_out]
         return reduce_chunk(keys[valid], points, priority, src, dst, self.origin, p.radius)
 
@@ -381,7 +394,7 @@ class GraphBuilder:
         hits = hits[collided].astype(np.float64)
         hit_keys = self.cells.keys(hits)
         dst = np.full(len(collided), -1, np.int64)
-        dst[collided] = hit_keys
+        dst[collided] = np.arange(len(hits))
         priority = uniform_hash(p.seed, 2 + rnd, a + np.flatnonzero(collided))
         src = np.asarray(inputs["cells"])[node]
         return reduce_chunk(hit_keys, hits, priority, src, dst, self.origin, p.radius)

@@ -221,7 +221,8 @@ def _lowest(group: np.ndarray, priority: np.ndarray) -> np.ndarray:
 
 def reduce_chunk(keys, points, priority, src, dst, origin, radius) -> tuple[np.ndarray, ...]:
     """A chunk's collisions ((M,) cell keys, (M, 3) world points, (M,) priorities in [0, 1)) and
-    outgoing samples ((S,) cell keys of their start, (S,) of their collision or -1: escaped),
+    outgoing samples ((S,) cell keys of their start, (S,) the index of their collision among the
+    chunk's or -1: escaped),
     reduced per cell and per edge where they were traced, so that what is sent and merged grows
     with the cells a chunk touches, not with its samples. Merging the reductions gives the table
     that merging the samples would (sums of integers, lowest priorities). Kept collisions and
@@ -234,7 +235,7 @@ def reduce_chunk(keys, points, priority, src, dst, origin, radius) -> tuple[np.n
     src_cells, src_inv, src_count = np.unique(src, return_inverse=True, return_counts=True)
     # Edges as (start cell, collision cell) indices into src_cells and cells, counted once each
     hit = dst >= 0
-    a, b = src_inv[hit], np.searchsorted(cells, dst[hit])
+    a, b = src_inv[hit], inv[dst[hit]]
     edge = a * len(cells) + b
     edges, e_count = np.unique(edge, return_counts=True)
     return (

@@ -25,7 +25,7 @@ from .cache import (
     volume_id,
 )
 from .errors import CacheError
-from .field import RadianceField, bake_field
+from .field import RadianceField, bake_field, march_light
 from .graph import BuildParams, Graph, GraphBuilder, build_graph, build_params, local_chunks, placed
 from .scene import Scene
 from .transport import transport
@@ -140,6 +140,10 @@ def precompute(
     graph, graph_reused, builder = None, True, None
     if found is None or found_field is None:  # the graph is needed: read it, or build it
         builder = GraphBuilder(volume, scene.medium.density_scale, params)
+        # The field's light march needs the medium and the light only: it goes out first, for
+        # workers that share this precompute to run whenever the other stages leave them idle
+        # (GraphBuilder.late_stages)
+        marched = march_light(builder, light_dir, chunks) if found_field is None else None
         graph = store.load_graph(gkey)
         graph_reused = graph is not None
         if graph is None:
@@ -197,6 +201,7 @@ def precompute(
             scene.light.irradiance_rgb(),
             rkey,
             chunks,
+            marched,
         )
         data = field.encode()
         store.save_field(rkey, data)

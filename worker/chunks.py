@@ -20,6 +20,8 @@ Keys, under ``cloudgraph:run:<run>:``:
 | stage:<gen>   | JSON {stage, inputs} of the gen-th stage put out (inputs in               |
 |               | ``<dir>/<gen>-<name>.npy``); several can be out at once                   |
 | todo          | tasks ``<gen>:<chunk>`` not yet claimed, oldest stage first               |
+| later         | the same, of stages needed late (GraphBuilder.late_stages): claimed when  |
+|               | todo is empty, so that they fill the gaps the other stages leave          |
 | lease:<task>  | the holder of a claimed task; expires LEASE_S after its last renewal      |
 | done:<gen>    | tasks of that stage finished by helpers (``<dir>/<gen>-<chunk>.npz``)     |
 """
@@ -48,10 +50,12 @@ POLL_S = 0.05
 #: Most helpers asked for one precompute.
 MAX_HELPERS = 16
 
-# LPOP a task and lease it to ARGV[1] for ARGV[2] ms, in one step (no task is ever held unleased)
+# LPOP a task (from todo, else from later where ARGV[3] is 1) and lease it to ARGV[1] for ARGV[2]
+# ms, in one step (no task is ever held unleased)
 _CLAIM = """
 local t = redis.call('LPOP', KEYS[1])
-if t then redis.call('SET', KEYS[2] .. t, ARGV[1], 'PX', ARGV[2]) end
+if not t and ARGV[3] == '1' then t = redis.call('LPOP', KEYS[2]) end
+if t then redis.call('SET', KEYS[3] .. t, ARGV[1], 'PX', ARGV[2]) end
 return t
 """
 
@@ -74,8 +78,10 @@ class _Run:
     def key(self, part: str) -> str:
         return run_key(self.run, part)
 
-    def claim(self, holder: str) -> str | None:
-        t = self._claim(keys=[self.key("todo"), self.key("lease:")], args=[holder, self.lease_ms])
+    def claim(self, holder: str, late: bool = True) -> str | None:
+        """A task for ``holder``: of the stages in order, then (``late``) of the late ones."""
+        keys = [self.key("todo"), self.key("later"), self.key("lease:")]
+        t = self._claim(keys=keys, args=[holder, self.lease_ms, int(late)])
         return None if t is None else t.decode()
 
     @contextmanager
@@ -187,7 +193,8 @@ class SharedChunks:
         self.pending[gen], self.ready[gen] = set(range(n)), []
         r.redis.set(r.key(f"stage:{gen}"), json.dumps({"stage": stage, "inputs": names}))
         if n:
-            r.redis.rpush(r.key("todo"), *(f"{gen}:{i}" for i in range(n)))
+            todo = r.key("later" if stage in builder.late_stages else "todo")
+            r.redis.rpush(todo, *(f"{gen}:{i}" for i in range(n)))
         if self.helpers is None:  # the first stage: helpers are asked for once the spec is whole
             self.spec["params"] = builder.params.to_dict()
             self._set_spec()
@@ -205,8 +212,9 @@ class SharedChunks:
                 self._finished(item.decode())
             if ready:
                 continue
-            # A chunk of our own: of this stage or an earlier one still out
-            task = r.claim(self.holder)
+            # A chunk of our own: of this stage or an earlier one still out; of a late stage only
+            # when its results are wanted (the helpers run them meanwhile)
+            task = r.claim(self.holder, late=self.stages[gen][0] in builder.late_stages)
             if task is not None:
                 g, i = (int(x) for x in task.split(":"))
                 stage, inputs = self.stages[g]
