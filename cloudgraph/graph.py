@@ -33,6 +33,7 @@ from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from functools import cached_property
+from itertools import chain
 
 import drjit as dr
 import mitsuba as mi
@@ -261,15 +262,17 @@ def trace_flights(
     return np.stack([np.array(c) for c in (p.x, p.y, p.z)], axis=1), np.array(collided, bool)
 
 
-def density_points(volume: Volume, n: int, seed: int) -> np.ndarray:
-    """(n, 3) world points drawn with probability proportional to density (voxel, then jitter)."""
-    if n <= 0:
+def density_points(volume: Volume, index: np.ndarray, seed: int, cdf: np.ndarray | None = None) -> np.ndarray:
+    """(n, 3) world points drawn with probability proportional to density (voxel, then jitter),
+    point i from numbers of its own (:func:`uniform_hash` of its index): the same whichever chunk
+    draws it. ``cdf``: the running sum of the density (float64), if at hand."""
+    index = np.asarray(index)
+    if not len(index):
         return np.zeros((0, 3))
-    rng = np.random.default_rng(seed + 7919)
-    cdf = np.cumsum(volume.density.ravel(), dtype=np.float64)
-    voxel = np.searchsorted(cdf, rng.random(n) * cdf[-1], side="right")  # inverse CDF (as choice, faster)
-    ijk = np.stack(np.unravel_index(voxel, volume.shape), axis=1) + rng.random((n, 3)) - 0.5
-    return voxel_points(volume, ijk)
+    cdf = np.cumsum(volume.density.ravel(), dtype=np.float64) if cdf is None else cdf
+    voxel = np.searchsorted(cdf, uniform_hash(seed, 7919, index) * cdf[-1], side="right")  # inverse CDF
+    jitter = np.stack([uniform_hash(seed, 7920 + axis, index) for axis in range(3)], axis=1)
+    return voxel_points(volume, np.stack(np.unravel_index(voxel, volume.shape), axis=1) + jitter - 0.5)
 
 
 #: Light paths enter from the six axis directions: the graph is then the same whatever light
@@ -282,6 +285,7 @@ GRAPH_LIGHTS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]
 #: per-node sums chunk by chunk, so memory does not grow with the number of light paths. Fixed
 #: sizes: the graph does not depend on how the work is cut.
 CHUNK_PATHS = 1 << 14
+CHUNK_SEEDS = 1 << 18
 CHUNK_FLIGHTS = 1 << 18
 #: Chunks run ahead on threads while the last is merged (local_chunks)
 LOCAL_THREADS = 2
@@ -294,7 +298,8 @@ class GraphBuilder:
     chunk: the build can be spread over workers (worker/chunks.py) and merged into the same
     graph, since a :class:`NodeTable` is the same whatever the order of its merges.
 
-    Stages: ``trace``, light paths from index * CHUNK_PATHS on; ``flights``, reinforcement
+    Stages: ``trace``, light paths from index * CHUNK_PATHS on; ``seeds``, coverage seeds from
+    index * CHUNK_SEEDS on; ``flights``, reinforcement
     flights from index * CHUNK_FLIGHTS on of one round, with inputs per node short of samples
     (``cells`` keys, ``ends`` running total of flights, ``kept`` collisions and how many
     ``members``) and the ``round``: a few bytes per node, not per flight; and the later
@@ -328,6 +333,8 @@ class GraphBuilder:
     def n_chunks(self, stage: str, inputs: dict | None = None) -> int:
         if stage == "trace":
             return -(-self.params.n_paths // CHUNK_PATHS)
+        if stage == "seeds":
+            return -(-self.params.coverage_seeds // CHUNK_SEEDS)
         if stage == "flights":
             return -(-int(inputs["ends"][-1]) // CHUNK_FLIGHTS)
         if stage == "lighting":
@@ -343,6 +350,8 @@ class GraphBuilder:
         the field bake's (``field_tau``, ``field_ms``: :func:`~cloudgraph.field.field_chunk`)."""
         if stage == "trace":
             return self._trace(index * CHUNK_PATHS)
+        if stage == "seeds":
+            return self._seeds(index * CHUNK_SEEDS)
         if stage == "flights":
             return self._flights(index * CHUNK_FLIGHTS, inputs)
         if stage == "lighting":
@@ -377,6 +386,18 @@ class GraphBuilder:
         succ = np.cumsum(valid.ravel()).reshape(valid.shape)
         src, dst = keys[has_out], np.where(has_next, succ, -1)[has_out]
         return reduce_chunk(keys[valid], points, priority, src, dst, self.origin, p.radius)
+
+    def _seeds(self, first: int) -> tuple[np.ndarray, ...]:
+        # Coverage seeds first .. first + CHUNK_SEEDS - 1: collisions without samples
+        p, none = self.params, np.zeros(0, np.int64)
+        index = np.arange(first, min(first + CHUNK_SEEDS, p.coverage_seeds))
+        seeds = density_points(self.volume, index, p.seed, self._density_cdf)
+        priority = uniform_hash(p.seed, 1, index)
+        return reduce_chunk(self.cells.keys(seeds), seeds, priority, none, none, self.origin, p.radius)
+
+    @cached_property
+    def _density_cdf(self) -> np.ndarray:
+        return np.cumsum(self.volume.density.ravel(), dtype=np.float64)
 
     def _flights(self, a: int, inputs: dict) -> tuple[np.ndarray, ...]:
         # Flights a .. a + CHUNK_FLIGHTS - 1 of the round: flight f belongs to the first node
@@ -444,19 +465,14 @@ def build_graph(
     origin = builder.origin
     table = NodeTable(origin, params.radius)
 
-    # Light paths (§4.3), chunk by chunk, each reduced into the table and dropped. They are put
-    # out first: the coverage seeds below need none of them (merges commute).
-    traced = chunks(builder, "trace")
-    # Coverage seeds (our addition): light paths are cut at max_collisions, so in thick media
-    # they never reach the far side. Points drawn in proportion to density seed nodes there too;
-    # reinforcement then gives every node its own outgoing samples.
-    seeds = density_points(volume, params.coverage_seeds, params.seed)
-    none = np.zeros(0, np.int64)
-    priority = uniform_hash(params.seed, 1, np.arange(len(seeds)))
-    seed_cells = builder.cells.keys(seeds)
-    table.merge(reduce_chunk(seed_cells, seeds, priority, none, none, origin, params.radius))
-    n = builder.n_chunks("trace")
-    for i, result in enumerate(traced):
+    # Light paths (§4.3) and coverage seeds, chunk by chunk, each reduced into the table and
+    # dropped (merges commute). Coverage seeds are our addition: light paths are cut at
+    # max_collisions, so in thick media they never reach the far side. Points drawn in
+    # proportion to density seed nodes there too; reinforcement then gives every node its own
+    # outgoing samples.
+    stages = [chunks(builder, "trace"), chunks(builder, "seeds")]
+    n = builder.n_chunks("trace") + builder.n_chunks("seeds")
+    for i, result in enumerate(chain(*stages)):
         table.merge(result)
         progress("trace", 0.3 * (i + 1) / n)
     t_trace = time.perf_counter() - t_start
