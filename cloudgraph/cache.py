@@ -229,9 +229,7 @@ def pack_graph(graph: Graph) -> dict:
     """
     n, c = graph.n_nodes, graph.counts.tocsr()
     c.sort_indices()
-    lo = graph.positions.min(axis=0).astype(np.float64) if n else np.zeros(3)
-    hi = graph.positions.max(axis=0).astype(np.float64) if n else np.zeros(3)
-    step = np.where(hi > lo, (hi - lo) / 65535.0, 1.0)
+    lo, step, positions = _box_quantized(graph.positions)
     unit = np.float32(graph.search_radius.min() if n else 1.0)
     lengths = np.diff(c.indptr)
     ends = c.indices.astype(np.int64)
@@ -240,7 +238,7 @@ def pack_graph(graph: Graph) -> dict:
     return {
         "box_lo": lo,
         "box_step": step,
-        "positions": _planes(np.round((graph.positions - lo) / step).astype(np.uint16).T.ravel()),
+        "positions": _planes(positions.T.ravel()),
         "search_unit": unit,
         "search_radius": _planes((graph.search_radius / unit).astype(np.float16)),
         "out_samples": _planes(_compact(graph.out_samples)),
@@ -251,10 +249,26 @@ def pack_graph(graph: Graph) -> dict:
     }
 
 
+def _box_quantized(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(box corner, step, (N, 3) uint16 positions) of (N, 3) node positions (pack_graph)."""
+    n = len(positions)
+    lo = positions.min(axis=0).astype(np.float64) if n else np.zeros(3)
+    hi = positions.max(axis=0).astype(np.float64) if n else np.zeros(3)
+    step = np.where(hi > lo, (hi - lo) / 65535.0, 1.0)
+    return lo, step, np.round((positions - lo) / step).astype(np.uint16)
+
+
+def _box_positions(lo: np.ndarray, step: np.ndarray, quantized: np.ndarray) -> np.ndarray:
+    return (lo + quantized * step).astype(np.float32)
+
+
+def stored_positions(positions: np.ndarray) -> np.ndarray:
+    """(N, 3) node positions as a graph file keeps them (:func:`pack_graph`), without packing."""
+    return _box_positions(*_box_quantized(positions))
+
+
 def _nodes(z: dict) -> tuple[np.ndarray, np.ndarray]:
-    positions = (z["box_lo"] + _unplanes(z["positions"], "u").reshape(3, -1).T * z["box_step"]).astype(
-        np.float32
-    )
+    positions = _box_positions(z["box_lo"], z["box_step"], _unplanes(z["positions"], "u").reshape(3, -1).T)
     return positions, _unplanes(z["search_radius"], "f").astype(np.float32) * np.float32(z["search_unit"])
 
 

@@ -450,6 +450,7 @@ def build_graph(
     progress=None,
     chunks=local_chunks,
     builder: GraphBuilder | None = None,
+    nodes_found=None,
 ) -> Graph:
     """Builds the graph of a volume and density scale (a variant must be set).
 
@@ -457,7 +458,8 @@ def build_graph(
     puts a stage's chunks (:meth:`GraphBuilder.chunk`) out and returns an iterator of their
     results in any order: run here as it is iterated by default, or spread over workers (who
     may start before it is iterated); the graph is the same bytes either way. ``builder``:
-    one already made for these arguments.
+    one already made for these arguments. ``nodes_found(positions)`` is called with the graph's
+    node positions as soon as they are known, before its search ranges and edges are made.
     """
     progress = progress or (lambda stage, fraction: None)
     t_start = time.perf_counter()
@@ -507,6 +509,9 @@ def build_graph(
     t0 = time.perf_counter()
     n, by_key = len(table), table.order  # nodes in order of their keys: the same however found
     nodes = table.means()[by_key]
+    positions = nodes.astype(np.float32)
+    if nodes_found is not None:
+        nodes_found(positions)
     out_samples = table.out[by_key]
     counts = sp.csr_matrix(table.counts[by_key][:, by_key])
     counts.sort_indices()
@@ -529,4 +534,4 @@ def build_graph(
         "build_s": round(time.perf_counter() - t_start, 3),
     }
     log.info("graph: %s", stats)
-    return Graph(nodes.astype(np.float32), search, out_samples, counts, stats)
+    return Graph(positions, search, out_samples, counts, stats)

@@ -20,6 +20,7 @@ from .cache import (
     pack_graph,
     pack_radiance,
     radiance_key,
+    stored_positions,
     unpack_graph,
     unpack_radiance,
     volume_id,
@@ -102,10 +103,11 @@ def cache_keys(scene: Scene, volume: Volume, params: BuildParams) -> dict:
     return {"volume_id": vid, "graph_key": gkey, "radiance_key": rkey}
 
 
-def lighting_inputs(graph: Graph, scene: Scene, params: BuildParams) -> dict:
-    """What the direct-lighting chunks of a graph's nodes need (GraphBuilder's ``lighting``)."""
+def lighting_inputs(positions: np.ndarray, scene: Scene, params: BuildParams) -> dict:
+    """What the direct-lighting chunks of a graph's nodes ((N, 3) positions) need (GraphBuilder's
+    ``lighting``)."""
     return {
-        "positions": graph.positions,
+        "positions": positions,
         "light_dir": np.asarray(scene.light.unit_direction()),
         "irradiance": np.asarray(scene.light.irradiance_rgb(), float),
         "samples": np.array([LIGHTING["samples"]]),
@@ -137,7 +139,15 @@ def precompute(
 
     found = store.load_radiance(rkey)
     found_field = store.load_field(rkey)
-    graph, graph_reused, builder = None, True, None
+    graph, graph_reused, builder, lit, t_light = None, True, None, None, 0.0
+
+    def light(positions):
+        # The direct light's chunks go out as soon as the nodes are known (at their positions as
+        # stored): workers that share this precompute light them while the graph is finished
+        nonlocal lit, t_light
+        t_light = time.perf_counter()
+        lit = chunks(builder, "lighting", lighting_inputs(stored_positions(positions), scene, params))
+
     if found is None or found_field is None:  # the graph is needed: read it, or build it
         builder = GraphBuilder(volume, scene.medium.density_scale, params)
         # The field's light march needs the medium and the light only: it goes out first, for
@@ -148,16 +158,19 @@ def precompute(
         graph_reused = graph is not None
         if graph is None:
             built = build_graph(
-                volume, scene.medium.density_scale, params, lambda s, f: progress(s, 0.7 * f), chunks, builder
+                volume,
+                scene.medium.density_scale,
+                params,
+                lambda s, f: progress(s, 0.7 * f),
+                chunks,
+                builder,
+                nodes_found=light if found is None else None,
             )
             graph_file = pack_graph(built)
             graph = unpack_graph(graph_file)  # go on with what is stored: fresh and loaded render alike
             graph.stats = built.stats  # with its stage times, which the file does not keep
-    if found is None:
-        # The direct light's chunks go out first: workers that share this precompute light the
-        # nodes while the graph is written
-        t0 = time.perf_counter()
-        lit = chunks(builder, "lighting", lighting_inputs(graph, scene, params))
+    if found is None and lit is None:
+        light(graph.positions)
     if not graph_reused:
         store.save_graph(gkey, graph_file)
     if found is not None:
@@ -165,7 +178,7 @@ def precompute(
     else:
         progress("lighting", 0.7)
         L_d = placed(lit, graph.n_nodes, 3, np.float64)
-        t_light = time.perf_counter() - t0
+        t_light = time.perf_counter() - t_light
         progress("transport", 0.85)
         t0 = time.perf_counter()
         C, albedo, depth = graph.collision_matrix(), scene.medium.albedo_rgb(), scene.render.max_depth

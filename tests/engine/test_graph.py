@@ -233,7 +233,7 @@ def test_changing_albedo_reuses_the_graph_and_recomputes_only_the_radiance(varia
 
     scene, params = medium_scene(volume, 0.5, albedo=0.6), build_params(volume, 0.5, "draft")
     lit = local_chunks(
-        GraphBuilder(volume, 0.5, params), "lighting", lighting_inputs(dark.graph, scene, params)
+        GraphBuilder(volume, 0.5, params), "lighting", lighting_inputs(dark.graph.positions, scene, params)
     )
     L_d = placed(lit, dark.graph.n_nodes, 3, np.float64)
     C = sp.csc_matrix(dark.graph.collision_matrix())
@@ -266,6 +266,13 @@ def test_a_fixed_seed_gives_identical_caches_in_separate_stores(variant, tmp_pat
     assert stored.positions.tobytes() == ga.positions.tobytes()
     assert (stored.counts != ga.counts).nnz == 0
     np.testing.assert_array_equal(stored.out_samples, ga.out_samples)
+    # A fresh build lights its nodes where they are stored (before packing them): lit again
+    # from the stored graph, the radiance is the same bytes
+    for f in [*(tmp_path / "b" / "radiance").iterdir(), *(tmp_path / "b" / "fields").iterdir()]:
+        f.unlink()
+    c = precompute(scene, volume, "draft", CacheStore(tmp_path / "b"))
+    assert c.stats["graph_reused"] and not c.stats["radiance_reused"]
+    assert c.radiance.tobytes() == b.radiance.tobytes()
 
 
 def test_the_graph_file_is_compact_and_exact_where_transport_needs_it(sphere, monkeypatch):
