@@ -142,11 +142,12 @@ def precompute(
     graph, graph_reused, builder, lit, t_light = None, True, None, None, 0.0
 
     def light(positions):
-        # The direct light's chunks go out as soon as the nodes are known (at their positions as
-        # stored): workers that share this precompute light them while the graph is finished
+        # The direct light's chunks, at the node positions as stored, go out as soon as the
+        # nodes are known: workers that share this precompute light them while the graph is
+        # finished and written
         nonlocal lit, t_light
         t_light = time.perf_counter()
-        lit = chunks(builder, "lighting", lighting_inputs(stored_positions(positions), scene, params))
+        lit = chunks(builder, "lighting", lighting_inputs(positions, scene, params))
 
     if found is None or found_field is None:  # the graph is needed: read it, or build it
         builder = GraphBuilder(volume, scene.medium.density_scale, params)
@@ -164,7 +165,7 @@ def precompute(
                 lambda s, f: progress(s, 0.7 * f),
                 chunks,
                 builder,
-                nodes_found=light if found is None else None,
+                nodes_found=(lambda p: light(stored_positions(p))) if found is None else None,
             )
             graph_file = pack_graph(built)
             graph = unpack_graph(graph_file)  # go on with what is stored: fresh and loaded render alike
