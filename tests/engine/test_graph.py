@@ -367,7 +367,10 @@ def test_the_graph_is_the_same_however_the_work_is_cut(variant, monkeypatch):
     whole = build_graph(volume, 0.5, params)
     monkeypatch.setattr(graph_module, "CHUNK_PATHS", 1000)  # 9 uneven chunks instead of one
     monkeypatch.setattr(graph_module, "CHUNK_FLIGHTS", 777)
+    monkeypatch.setattr(graph_module, "CHUNK_SEEDS", 333)
+    monkeypatch.setattr(graph_module, "LOCAL_THREADS", 3)
     cut = build_graph(volume, 0.5, params)
+    assert params.coverage_seeds > 3 * 333
     assert whole.n_nodes > 500 and whole.stats["collisions"] == cut.stats["collisions"]
     for x, y in zip(graph_arrays(whole), graph_arrays(cut), strict=True):
         assert x.dtype == y.dtype and x.tobytes() == y.tobytes()

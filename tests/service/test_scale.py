@@ -131,3 +131,18 @@ def test_a_chunk_whose_worker_died_is_redone_and_the_graph_is_the_same(tmp_path,
     assert (
         not list(redis_only.scan_iter("cloudgraph:run:*")) and not Path(tmp_path / "runs" / "died").exists()
     )
+
+
+def test_late_tasks_wait_until_no_other_task_is_left(redis_only):
+    """Tasks of a late stage (the field's light march, GraphBuilder.late_stages) fill the gaps:
+    a helper takes them only when no other task is out, a coordinator only when it asks."""
+    from cloudgraph.graph import GraphBuilder
+
+    assert "field_tau" in GraphBuilder.late_stages and "trace" not in GraphBuilder.late_stages
+    run = _Run(redis_only, "late", lease_s=1.0)
+    redis_only.rpush(run.key("later"), "1:0", "1:1")
+    redis_only.rpush(run.key("todo"), "2:0")
+    assert run.claim("coordinator", late=False) == "2:0"
+    assert run.claim("coordinator", late=False) is None
+    assert [run.claim("helper"), run.claim("helper"), run.claim("helper")] == ["1:0", "1:1", None]
+    assert redis_only.get(run.key("lease:1:1")) == b"helper"
