@@ -6,6 +6,7 @@ Started, watched and restarted by the supervisor (``python -m worker``, see ``__
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import logging
 import signal
@@ -139,12 +140,14 @@ def run(running: Running, name: str) -> None:
         import drjit as dr
 
         dr.set_thread_count(settings.WORKER_THREADS)
-    # What jobs import (OpenVDB, the engine's stages, scipy), now: a second or so that every
-    # first job of a process would wait for, helpers of a shared precompute too
-    import pyopenvdb  # noqa: F401
-
     import cloudgraph.integrators.graph  # noqa: F401  (registers the integrator for this variant)
+
+    # What jobs import (the engine's stages, scipy, OpenVDB), now: a second or so that every
+    # first job of a process would wait for, helpers of a shared precompute too
     import cloudgraph.precompute  # noqa: F401
+
+    with contextlib.suppress(ImportError):  # without it, jobs that read .vdb files say so
+        import pyopenvdb  # noqa: F401
 
     log.info("worker %s: variant %s, data %s, redis %s", name, variant, settings.DATA_DIR, settings.REDIS_URL)
     conn = Redis.from_url(settings.REDIS_URL)
