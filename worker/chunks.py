@@ -60,6 +60,14 @@ return t
 """
 
 
+# RPUSH ARGV[1] to the done list KEYS[2] while the run's spec KEYS[1] exists: a helper that ends a
+# chunk after its run ended leaves no key behind
+_DONE = """
+if redis.call('EXISTS', KEYS[1]) == 1 then return redis.call('RPUSH', KEYS[2], ARGV[1]) end
+return 0
+"""
+
+
 def run_key(run: str, part: str) -> str:
     return f"cloudgraph:run:{run}:{part}"
 
@@ -74,6 +82,7 @@ class _Run:
     def __init__(self, redis: Redis, run: str, lease_s: float):
         self.redis, self.run, self.lease_ms = redis, run, int(lease_s * 1000)
         self._claim = redis.register_script(_CLAIM)
+        self._done = redis.register_script(_DONE)
 
     def key(self, part: str) -> str:
         return run_key(self.run, part)
@@ -83,6 +92,10 @@ class _Run:
         keys = [self.key("todo"), self.key("later"), self.key("lease:")]
         t = self._claim(keys=keys, args=[holder, self.lease_ms, int(late)])
         return None if t is None else t.decode()
+
+    def done(self, gen: int, task: str) -> None:
+        """Tells the coordinator that a helper's task is done (unless the run has ended)."""
+        self._done(keys=[self.key("spec"), self.key(f"done:{gen}")], args=[task])
 
     @contextmanager
     def leased(self, task: str, holder: str):
@@ -166,7 +179,10 @@ class SharedChunks:
         self._stop.set()
         self._beat.join()
         r = self.r.redis
-        r.delete(self.r.key("spec"), *r.scan_iter(match=self.r.key("*"), count=1000))
+        r.delete(self.r.key("spec"))  # first: no helper adds a key once it is gone (_DONE)
+        left = list(r.scan_iter(match=self.r.key("*"), count=1000))
+        if left:
+            r.delete(*left)
         shutil.rmtree(self.folder, ignore_errors=True)
 
     def _set_spec(self) -> None:
@@ -278,7 +294,7 @@ def help_run(redis: Redis, run: str, make_builder, lease_s: float = LEASE_S) -> 
                 _write(folder / f"{gen}-{i}.npz", np.savez, **{f"a{k}": a for k, a in enumerate(result)})
             except FileNotFoundError:  # the run ended (its folder went) while this chunk ran
                 break
-            redis.rpush(r.key(f"done:{gen}"), task)
+            r.done(gen, task)
         done, busy = done + 1, busy + time.perf_counter() - t0
     log.info("run %s: ran %d chunks, busy %.1f s of %.1f s", run, done, busy, time.perf_counter() - t_start)
     return done

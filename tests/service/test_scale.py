@@ -146,3 +146,13 @@ def test_late_tasks_wait_until_no_other_task_is_left(redis_only):
     assert run.claim("coordinator", late=False) is None
     assert [run.claim("helper"), run.claim("helper"), run.claim("helper")] == ["1:0", "1:1", None]
     assert redis_only.get(run.key("lease:1:1")) == b"helper"
+
+
+def test_a_helper_that_ends_a_chunk_after_its_run_ended_leaves_no_key(redis_only):
+    run = _Run(redis_only, "over", lease_s=1.0)
+    redis_only.set(run.key("spec"), "{}")
+    run.done(3, "3:0")
+    assert redis_only.lrange(run.key("done:3"), 0, -1) == [b"3:0"]
+    redis_only.delete(run.key("spec"), run.key("done:3"))  # the coordinator ends the run
+    run.done(3, "3:1")
+    assert not list(redis_only.scan_iter(run.key("*")))
