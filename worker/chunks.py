@@ -178,9 +178,14 @@ class SharedChunks:
         log.info("run %s: chunks run here per stage %s, redone %d", self.r.run, self.here, self.redone)
         self._stop.set()
         self._beat.join()
-        r = self.r.redis
-        r.delete(self.r.key("spec"))  # first: no helper adds a key once it is gone (_DONE)
-        left = list(r.scan_iter(match=self.r.key("*"), count=1000))
+        r, key = self.r.redis, self.r.key
+        # First the spec and the task lists: no helper takes a task or reports one after this
+        # (_DONE); then wait (at most a lease) for chunks still held, whose files may yet come
+        r.delete(key("spec"), key("todo"), key("later"))
+        end = time.monotonic() + self.r.lease_ms / 1000
+        while any(r.scan_iter(match=key("lease:*"), count=1000)) and time.monotonic() < end:
+            time.sleep(POLL_S)
+        left = list(r.scan_iter(match=key("*"), count=1000))
         if left:
             r.delete(*left)
         shutil.rmtree(self.folder, ignore_errors=True)
