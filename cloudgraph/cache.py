@@ -272,6 +272,16 @@ def _nodes(z: dict) -> tuple[np.ndarray, np.ndarray]:
     return positions, _unplanes(z["search_radius"], "f").astype(np.float32) * np.float32(z["search_unit"])
 
 
+def stored_graph(graph: Graph, packed: dict) -> Graph:
+    """``graph`` as its file (:func:`pack_graph`'s arrays ``packed``) keeps it: positions and
+    search ranges as stored; its edges, counts and samples, which the file keeps exactly, as they
+    are (not decoded again)."""
+    from .graph import Graph
+
+    positions, search_radius = _nodes(packed)
+    return Graph(positions, search_radius, graph.out_samples, graph.counts, graph.stats)
+
+
 def unpack_graph(z: dict) -> Graph:
     """The graph of :func:`pack_graph`'s arrays (from a file or fresh)."""
     import scipy.sparse as sp

@@ -20,8 +20,8 @@ from .cache import (
     pack_graph,
     pack_radiance,
     radiance_key,
+    stored_graph,
     stored_positions,
-    unpack_graph,
     unpack_radiance,
     volume_id,
 )
@@ -168,8 +168,7 @@ def precompute(
                 nodes_found=(lambda p: light(stored_positions(p))) if found is None else None,
             )
             graph_file = pack_graph(built)
-            graph = unpack_graph(graph_file)  # go on with what is stored: fresh and loaded render alike
-            graph.stats = built.stats  # with its stage times, which the file does not keep
+            graph = stored_graph(built, graph_file)  # go on with what is stored: fresh and loaded alike
     if found is None and lit is None:
         light(graph.positions)
     if not graph_reused:
