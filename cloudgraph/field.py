@@ -49,7 +49,16 @@ import numpy as np
 from scipy.ndimage import maximum_filter
 from scipy.spatial import cKDTree
 
-from .tracing import BLOCK, DensityField, block_majorant, exponential_segment, linear_texture, step_length
+from .tracing import (
+    BLOCK,
+    DensityField,
+    block_majorant,
+    exponential_segment,
+    jit_rng,
+    linear_texture,
+    step_length,
+    to_jit,
+)
 
 MAGIC = b"CGFIELD1"
 VERSION = 1
@@ -222,7 +231,7 @@ def _to_world(u2w: np.ndarray, u: np.ndarray) -> np.ndarray:
 
 
 def _point3f(w: np.ndarray) -> mi.Point3f:
-    return mi.Point3f(*(w[:, i].astype(np.float32) for i in range(3)))
+    return to_jit(mi.Point3f, w)
 
 
 def march_light(builder, light_dir, chunks):
@@ -245,6 +254,7 @@ def bake_field(
     radiance_key: str = "",
     chunks=None,
     marched=None,
+    grid=None,
 ) -> tuple[RadianceField, dict]:
     """Bakes the field of a radiance cache (a variant must be set).
 
@@ -256,6 +266,7 @@ def bake_field(
         albedo, irradiance: (3,); light_dir: (3,) direction the light travels.
         chunks: runs the marches' chunks (:func:`field_chunk`), as in ``build_graph``.
         marched: the light march's results (:func:`march_light`), if already put out.
+        grid: the graph's nodes binned (``NodeGrid.build`` without radiance), if already made.
 
     Returns:
         (field, stats): stats hold the bake's seconds per part.
@@ -281,7 +292,7 @@ def bake_field(
     # per point (a spherical Fibonacci set, turned at random per point) marched in closed form.
     t0 = time.perf_counter()
     node_G = radiance_gather * np.asarray(albedo, np.float32)[None, :]
-    grid = NodeGrid.build(graph.positions, graph.search_radius, node_G)
+    grid = (grid or NodeGrid.build(graph.positions, graph.search_radius)).with_radiance(node_G)
     G = grid.lookup(_point3f(points), (0.05 * node_radius) ** 2, mi.Bool(True))
     dr.eval(G)  # one kernel for the three channels
     G = np.stack([np.array(c, np.float32) for c in (G.x, G.y, G.z)], axis=1)
@@ -342,7 +353,7 @@ def field_chunk(builder, stage: str, index: int, inputs: dict) -> tuple[np.ndarr
     q = np.asarray(q[a : a + size], np.float32)
     if stage == "field_tau":
         to_light = mi.Vector3f(*(float(c) for c in inputs["to_light"]))
-        tau = _optical_depth(medium, mi.Point3f(*(q[:, i] for i in range(3))), to_light, step)
+        tau = _optical_depth(medium, to_jit(mi.Point3f, q), to_light, step)
         values = np.array(tau, np.float32)[:, None]
     else:
         values = _gather_ms(medium, linear_texture(np.asarray(inputs["G"])), q, step, seed=a)
@@ -413,14 +424,14 @@ def _gather_ms(medium, G_tex, points: np.ndarray, step: float, seed: int) -> np.
     phi = np.pi * (1.0 + 5.0**0.5) * i
     r = np.sqrt(1.0 - z * z)
     fib = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1).astype(np.float32)
-    rng = mi.PCG32(m, initstate=seed, initseq=dr.arange(mi.UInt64, m))
+    rng = jit_rng(m, seed, dr.arange(mi.UInt64, m))
     frame = mi.Frame3f(mi.warp.square_to_uniform_sphere(mi.Point2f(rng.next_float32(), rng.next_float32())))
     ray = dr.arange(mi.UInt32, m * k)
     point, j = ray // k, ray % k
     fr = dr.gather(mi.Frame3f, frame, point)
-    w = dr.gather(mi.Vector3f, mi.Vector3f(*(np.ascontiguousarray(fib[:, c]) for c in range(3))), j)
+    w = dr.gather(mi.Vector3f, to_jit(mi.Vector3f, fib), j)
     d = fr.to_world(w)
-    o = dr.gather(mi.Point3f, mi.Point3f(*(points[:, c].astype(np.float32) for c in range(3))), point)
+    o = dr.gather(mi.Point3f, to_jit(mi.Point3f, points), point)
     L = _march_ms(medium, G_tex, o, d, step)
     dr.eval(L)  # one kernel: read channel by channel, each would run the march again
     out = np.stack([np.array(c, np.float64) for c in (L.x, L.y, L.z)], axis=1)

@@ -42,7 +42,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from .nodes import MEMBERS_KEPT, NodeCells, NodeTable, reduce_chunk, uniform_hash
-from .tracing import DensityField, sample_collision, uniform_sphere
+from .tracing import DensityField, jit_rng, sample_collision, to_jit, uniform_sphere
 from .volume import Volume, voxel_points
 
 log = logging.getLogger(__name__)
@@ -209,10 +209,11 @@ def trace_light_paths(
     """
     lo, hi = bounds
     centre, radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2 * 1.001
-    dirs = mi.Vector3f(*(np.asarray(directions, np.float32)[:, i] for i in range(3)))
-    d = dr.gather(mi.Vector3f, dirs, dr.arange(mi.UInt32, first, first + n_paths) % len(directions))
+    dirs = to_jit(mi.Vector3f, directions)
+    path = dr.arange(mi.UInt32, n_paths) + dr.opaque(mi.UInt32, first)
+    d = dr.gather(mi.Vector3f, dirs, path % len(directions))
     frame = mi.Frame3f(d)
-    rng = mi.PCG32(n_paths, initstate=seed + first, initseq=first)  # lane i: first + i added to both
+    rng = jit_rng(n_paths, seed + first, first)  # lane i: first + i added to both
     # Origins uniform on a disk perpendicular to the light that covers the medium
     disk = mi.warp.square_to_uniform_disk_concentric(mi.Point2f(rng.next_float32(), rng.next_float32()))
     o = mi.Point3f(
@@ -253,8 +254,8 @@ def trace_flights(
     """One isotropic free flight from each origin: (collision points (M, 3), collided (M,)).
     Flight i (counted from ``first``) is the same whichever range it is traced in."""
     m = len(origins)
-    rng = mi.PCG32(m, initstate=seed + first, initseq=first)  # lane i: first + i added to both
-    o = mi.Point3f(*(origins[:, i].astype(np.float32) for i in range(3)))
+    rng = jit_rng(m, seed + first, first)  # lane i: first + i added to both
+    o = to_jit(mi.Point3f, origins)
     d = uniform_sphere(rng)
     t, collided = sample_collision(field, o, d, rng, mi.Bool(True))
     p = o + t * d
@@ -287,6 +288,9 @@ GRAPH_LIGHTS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]
 CHUNK_PATHS = 1 << 14
 CHUNK_SEEDS = 1 << 18
 CHUNK_FLIGHTS = 1 << 18
+#: A round of reinforcement is cut into at least this many chunks (of 2^12 flights or more), so
+#: that the workers sharing a build share its last, small rounds too
+ROUND_CHUNKS = 8
 #: Chunks run ahead on threads while the last is merged (local_chunks)
 LOCAL_THREADS = 2
 
@@ -336,7 +340,7 @@ class GraphBuilder:
         if stage == "seeds":
             return -(-self.params.coverage_seeds // CHUNK_SEEDS)
         if stage == "flights":
-            return -(-int(inputs["ends"][-1]) // CHUNK_FLIGHTS)
+            return -(-int(inputs["ends"][-1]) // _flight_chunk(inputs))
         if stage == "lighting":
             from .lighting import LIGHTING_CHUNK
 
@@ -353,7 +357,7 @@ class GraphBuilder:
         if stage == "seeds":
             return self._seeds(index * CHUNK_SEEDS)
         if stage == "flights":
-            return self._flights(index * CHUNK_FLIGHTS, inputs)
+            return self._flights(index, inputs)
         if stage == "lighting":
             from .lighting import lighting_chunk
 
@@ -399,14 +403,15 @@ class GraphBuilder:
     def _density_cdf(self) -> np.ndarray:
         return np.cumsum(self.volume.density.ravel(), dtype=np.float64)
 
-    def _flights(self, a: int, inputs: dict) -> tuple[np.ndarray, ...]:
-        # Flights a .. a + CHUNK_FLIGHTS - 1 of the round: flight f belongs to the first node
+    def _flights(self, index: int, inputs: dict) -> tuple[np.ndarray, ...]:
+        # Flights a .. a + size - 1 of the round: flight f belongs to the first node
         # whose running total of flights (``ends``) exceeds f, and starts at one of its kept
         # collisions picked by f's own random number. Each flight is a sample of its node;
         # where it collides is a collision too.
         p, rnd = self.params, int(inputs["round"][0])
-        ends = np.asarray(inputs["ends"])
-        f = np.arange(a, min(a + CHUNK_FLIGHTS, int(ends[-1])))
+        ends, size = np.asarray(inputs["ends"]), _flight_chunk(inputs)
+        a = index * size
+        f = np.arange(a, min(a + size, int(ends[-1])))
         node = np.searchsorted(ends, f, side="right")
         members = np.asarray(inputs["members"])[node]
         pick = np.floor(uniform_hash(p.seed, 1000 + rnd, f) * members).astype(np.int64)
@@ -419,6 +424,11 @@ class GraphBuilder:
         priority = uniform_hash(p.seed, 2 + rnd, a + np.flatnonzero(collided))
         src = np.asarray(inputs["cells"])[node]
         return reduce_chunk(hit_keys, hits, priority, src, dst, self.origin, p.radius)
+
+
+def _flight_chunk(inputs: dict) -> int:
+    """Flights per chunk of a round of reinforcement."""
+    return min(CHUNK_FLIGHTS, max(1 << 12, -(-int(inputs["ends"][-1]) // ROUND_CHUNKS)))
 
 
 def local_chunks(builder: GraphBuilder, stage: str, inputs: dict | None = None):
@@ -482,7 +492,7 @@ def build_graph(
     # Reinforcement of sparse nodes (§4.3, App. B)
     t0 = time.perf_counter()
     for rnd in range(params.reinforce_rounds):
-        n_edges = np.diff(table.counts.indptr)
+        n_edges = table.out_edges(params.min_out_edges)
         deficit = np.maximum(params.min_out_samples - table.out, 0)
         deficit[(n_edges < params.min_out_edges) & (deficit == 0)] = params.min_out_samples
         if not deficit.any():

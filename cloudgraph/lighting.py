@@ -19,7 +19,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .tracing import DensityField, ratio_tracking
+from .tracing import DensityField, jit_rng, ratio_tracking, to_jit
 
 #: Nodes per chunk of the direct lighting (chunks may run on other workers, worker/chunks.py).
 LIGHTING_CHUNK = 1 << 15
@@ -51,9 +51,9 @@ def direct_radiance(
     if n == 0:
         return np.zeros((0, 3))
     m, lane = n * samples, first * samples
-    rng = mi.PCG32(m, initstate=seed + lane, initseq=lane)  # lane j: first * samples + j added to both
+    rng = jit_rng(m, seed + lane, lane)  # lane j: first * samples + j added to both
     node = dr.arange(mi.UInt32, m) // samples
-    o = dr.gather(mi.Point3f, mi.Point3f(*(positions[:, i].astype(np.float32) for i in range(3))), node)
+    o = dr.gather(mi.Point3f, to_jit(mi.Point3f, positions), node)
     to_light = -np.asarray(light_dir, float) / np.linalg.norm(light_dir)
     Tr = ratio_tracking(field, o, mi.Vector3f(*(float(c) for c in to_light)), rng, mi.Bool(True))
     # Mean over each node's estimates (in numpy: a fixed summation order on every backend)

@@ -95,6 +95,17 @@ def uniform_hash(seed: int, stream: int, index: np.ndarray) -> np.ndarray:
 FIXED_POINT = 2.0**20
 
 
+#: A NodeTable's per-node arrays: (shape of a node's row, type, value of a new node)
+_COLUMNS = {
+    "keys": ((), np.int64, 0),
+    "count": ((), np.int64, 0),
+    "sum": ((3,), np.int64, 0),
+    "kept": ((MEMBERS_KEPT, 3), np.float32, 0),
+    "priority": ((MEMBERS_KEPT,), np.float64, np.inf),
+    "out": ((), np.int64, 0),
+}
+
+
 class NodeTable:
     """The nodes as they are being found, in the order found: per node its cell key, the number
     and sum of its collisions, a uniform sample of MEMBERS_KEPT of them (the lowest random
@@ -105,14 +116,12 @@ class NodeTable:
 
     def __init__(self, origin: np.ndarray, radius: float):
         self.origin, self.unit = np.asarray(origin, float), float(radius) / FIXED_POINT
-        self.keys = np.zeros(0, np.int64)
         self.order = np.zeros(0, np.int64)  # node indices sorted by key
         self.sorted_keys = np.zeros(0, np.int64)  # keys[order]
-        self.count = np.zeros(0, np.int64)
-        self.sum = np.zeros((0, 3), np.int64)
-        self.kept = np.zeros((0, MEMBERS_KEPT, 3), np.float32)
-        self.priority = np.zeros((0, MEMBERS_KEPT))
-        self.out = np.zeros(0, np.int64)
+        # The per-node arrays (self.keys, ...) are views of the first len(self) rows of stores
+        # that grow by half when full: adding nodes does not copy the table at every merge
+        self._store: dict[str, np.ndarray] = {}
+        self._grow(0, 0)
         self._counts = sp.csr_matrix((0, 0), dtype=np.int64)
         self._edges: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # merged, not yet summed
         self._pending = 0
@@ -135,6 +144,27 @@ class NodeTable:
             self._counts = self._counts + sp.csr_matrix((values, (rows, cols)), shape=(n, n))
         self._edges, self._pending = [], 0
 
+    def out_edges(self, below: int) -> np.ndarray:
+        """(N,) distinct edges from each node, exact where fewer than ``below`` (``below`` or
+        more elsewhere), without summing the edges still waiting: between reinforcement rounds
+        that would stop every worker that shares the build while one does it. A merge's edges
+        are distinct, so a node with ``below`` of them in one merge has enough; only the others
+        are counted exactly."""
+        n = len(self)
+        self._counts.resize((n, n))
+        known = np.diff(self._counts.indptr)  # distinct edges: at least this many
+        for rows, _, _ in self._edges:
+            known = np.maximum(known, np.bincount(rows, minlength=n))
+        few = known < below
+        if not self._edges or not few.any():
+            return known
+        rows, cols = (np.concatenate(a) for a in list(zip(*self._edges, strict=True))[:2])
+        wait = few[rows]
+        summed = self._counts[few].tocoo()  # the few's summed rows, numbered from 0
+        keys = np.concatenate([np.flatnonzero(few)[summed.row] * n + summed.col, rows[wait] * n + cols[wait]])
+        known[few] = np.bincount(np.unique(keys) // n, minlength=n)[few]
+        return known
+
     def __len__(self) -> int:
         return len(self.keys)
 
@@ -151,16 +181,24 @@ class NodeTable:
         new = np.unique(keys[~found])
         if len(new):
             n, m = len(self), len(new)
-            self.keys = np.concatenate([self.keys, new])
+            self._grow(n, m)
+            self.keys[n:] = new
             at = np.searchsorted(self.sorted_keys, new)  # both sorted: insert, no new sort
             self.order = np.insert(self.order, at, np.arange(n, n + m))
             self.sorted_keys = np.insert(self.sorted_keys, at, new)
-            self.count = np.concatenate([self.count, np.zeros(m, np.int64)])
-            self.sum = np.concatenate([self.sum, np.zeros((m, 3), np.int64)])
-            self.kept = np.concatenate([self.kept, np.zeros((m, MEMBERS_KEPT, 3), np.float32)])
-            self.priority = np.concatenate([self.priority, np.full((m, MEMBERS_KEPT), np.inf)])
-            self.out = np.concatenate([self.out, np.zeros(m, np.int64)])
         return self.order[np.searchsorted(self.sorted_keys, keys)]
+
+    def _grow(self, n: int, m: int) -> None:
+        """From n nodes to n + m, the new ones as _COLUMNS makes them."""
+        if not self._store or n + m > len(self._store["keys"]):
+            size = max(n + m + (n + m) // 2, 1024)
+            for name, (shape, dtype, fill) in _COLUMNS.items():
+                store = np.full((size, *shape), fill, dtype)
+                if n:
+                    store[:n] = self._store[name][:n]
+                self._store[name] = store
+        for name in _COLUMNS:
+            setattr(self, name, self._store[name][: n + m])
 
     def merge(self, part: tuple[np.ndarray, ...]) -> None:
         """Adds a chunk's :func:`reduce_chunk` (per cell: collisions, their fixed-point sum and
@@ -186,19 +224,30 @@ class NodeTable:
 
     def _keep(self, cand: np.ndarray, priority: np.ndarray, points: np.ndarray) -> None:
         # Each touched node's row of kept and entering collisions (2 x MEMBERS_KEPT, padded with
-        # inf) is sorted on its own; entering ones come grouped by node.
+        # inf) is sorted on its own; entering ones come grouped by node. The MEMBERS_KEPT lowest
+        # are gathered from one pool (the touched nodes' kept ones, then the entering ones),
+        # each node's row moved as one record.
         first = np.flatnonzero(np.diff(cand, prepend=-1))  # each touched node's first one
-        touched, m = cand[first], len(cand)
-        row = np.repeat(np.arange(len(first)), np.diff(np.append(first, m)))
-        pri = np.full((len(touched), 2 * MEMBERS_KEPT), np.inf)
-        pri[:, :MEMBERS_KEPT] = self.priority[touched]
-        pri[row, MEMBERS_KEPT + np.arange(m) - first[row]] = priority
-        low = np.argsort(pri, axis=1, kind="stable")[:, :MEMBERS_KEPT]
-        # slot j < MEMBERS_KEPT: the node's kept one j stays; else entering one first + j - M
-        stays = self.kept[touched[:, None], np.minimum(low, MEMBERS_KEPT - 1)]
-        enters = points[np.clip(first[:, None] + low - MEMBERS_KEPT, 0, m - 1)]
-        self.kept[touched] = np.where((low < MEMBERS_KEPT)[..., None], stays, enters)
-        self.priority[touched] = np.take_along_axis(pri, low, axis=1)
+        touched, m, n, M = cand[first], len(cand), len(first), MEMBERS_KEPT
+        row = np.repeat(np.arange(n), np.diff(np.append(first, m)))
+        pri = np.full((n, 2 * M), np.inf)
+        pri[:, :M] = _records(self.priority)[touched].view(np.float64).reshape(n, M)
+        pri[row, M + np.arange(m) - first[row]] = priority
+        low = np.argsort(pri, axis=1, kind="stable")[:, :M]
+        # slot j < M: the node's kept one j stays (pool row i M + j); else entering one first + j - M
+        i = np.arange(n)[:, None]
+        take = np.where(low < M, i * M + low, n * M + first[:, None] + low - M).ravel()
+        pool = np.concatenate([_records(self.kept)[touched].view(np.float32).reshape(-1, 3), points])
+        _records(self.kept)[touched] = _records(_records(pool)[take].view(np.float32).reshape(n, M, 3))
+        _records(self.priority)[touched] = _records(pri[i, low])
+
+
+def _records(a: np.ndarray) -> np.ndarray:
+    """A non-empty C-contiguous (N, ...) array as a view of N records: gathering or scattering
+    rows of it moves each row as one copy, several times faster than fancy indexing of the last
+    axes. Writes to the view are writes to ``a``."""
+    assert a.flags.c_contiguous and len(a), "records of a contiguous, non-empty array only"
+    return a.reshape(len(a), -1).view(np.dtype((np.void, a.strides[0])))[:, 0]
 
 
 def _lowest(group: np.ndarray, priority: np.ndarray) -> np.ndarray:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import time
 import weakref
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -171,6 +172,11 @@ def precompute(
             graph = stored_graph(built, graph_file)  # go on with what is stored: fresh and loaded alike
     if found is None and lit is None:
         light(graph.positions)
+    # The field's node bins need the graph only: made on a thread while this one writes the
+    # graph, and workers that share this precompute light the nodes
+    from .integrators.graph import NodeGrid
+
+    grid = _on_thread(NodeGrid.build, graph.positions, graph.search_radius) if found_field is None else None
     if not graph_reused:
         store.save_graph(gkey, graph_file)
     if found is not None:
@@ -215,6 +221,7 @@ def precompute(
             rkey,
             chunks,
             marched,
+            grid.result(),
         )
         data = field.encode()
         store.save_field(rkey, data)
@@ -238,6 +245,15 @@ def precompute(
         "quality": quality,
     }
     return RadianceCache(radiance, radiance_gather, field, keys, stats, store, graph)
+
+
+def _on_thread(fn, *args) -> Future:
+    """fn(*args) run on a thread of its own."""
+    pool = ThreadPoolExecutor(1)
+    try:
+        return pool.submit(fn, *args)
+    finally:
+        pool.shutdown(wait=False)
 
 
 def _size(path) -> int:

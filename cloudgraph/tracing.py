@@ -25,8 +25,9 @@ BLOCK = 8
 def linear_texture(values: np.ndarray):
     """A 3D texture over the unit cube from (nz, ny, nx[, channels]) values at texel centres:
     trilinear, clamped at the edges (as Mitsuba's ``gridvolume``)."""
-    a = np.ascontiguousarray(values if values.ndim == 4 else values[..., None], np.float32)
-    return mi.Texture3f(mi.TensorXf(a), filter_mode=dr.FilterMode.Linear, wrap_mode=dr.WrapMode.Clamp)
+    a = values if values.ndim == 4 else values[..., None]
+    tensor = mi.TensorXf(to_jit(mi.Float, a.ravel()), a.shape)
+    return mi.Texture3f(tensor, filter_mode=dr.FilterMode.Linear, wrap_mode=dr.WrapMode.Clamp)
 
 
 def block_majorant(grid: np.ndarray, block: int = BLOCK) -> np.ndarray:
@@ -212,3 +213,36 @@ def exponential_segment(dtau: mi.Float, v0, v1):
 def uniform_sphere(rng: mi.PCG32) -> mi.Vector3f:
     """Isotropic directions."""
     return mi.warp.square_to_uniform_sphere(mi.Point2f(rng.next_float32(), rng.next_float32()))
+
+
+# ------------------------------------------------------------------ inputs that compile once
+# Kernels are compiled for what their inputs look like: a Python number is a literal in them,
+# and Dr.Jit's LLVM backend reads numpy memory where it lies and compiles for the alignment it
+# finds. Chunks and renders that differ only in an offset, a seed or where numpy put an array
+# would each compile a kernel of their own (0.1 s and more) without these two.
+
+
+def jit_rng(size: int, initstate, initseq) -> mi.PCG32:
+    """``size`` PCG32 streams, lane i adding i to both seeds; integer seeds are opaque."""
+
+    def seed(v):
+        return dr.opaque(mi.UInt64, v) if isinstance(v, int | np.integer) else v
+
+    return mi.PCG32(size, initstate=seed(initstate), initseq=seed(initseq))
+
+
+def to_jit(cls, a: np.ndarray, dtype=np.float32):
+    """numpy data as the Dr.Jit type ``cls``: (N,) for a flat type, (N, k) for a k-vector one,
+    each column copied to 64-byte-aligned memory first."""
+    a = np.asarray(a)
+    if a.ndim == 1:
+        return cls(_aligned(a, dtype))
+    return cls(*(_aligned(a[:, i], dtype) for i in range(a.shape[1])))
+
+
+def _aligned(a: np.ndarray, dtype) -> np.ndarray:
+    buf = np.empty(a.size * np.dtype(dtype).itemsize + 64, np.uint8)
+    start = -buf.ctypes.data % 64
+    out = buf[start : start + a.size * np.dtype(dtype).itemsize].view(dtype)
+    out[:] = a
+    return out

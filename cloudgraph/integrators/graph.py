@@ -37,7 +37,7 @@ block with the field's majorant grid.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import drjit as dr
 import mitsuba as mi
@@ -52,6 +52,7 @@ from ..tracing import (
     ratio_tracking,
     sample_collision,
     step_length,
+    to_jit,
     uniform_sphere,
 )
 
@@ -83,9 +84,14 @@ class NodeGrid:
 
     @classmethod
     def build(
-        cls, positions: np.ndarray, search_radius: np.ndarray, radiance: np.ndarray, max_cells: int = 1 << 22
+        cls,
+        positions: np.ndarray,
+        search_radius: np.ndarray,
+        radiance: np.ndarray | None = None,
+        max_cells: int = 1 << 22,
     ) -> NodeGrid:
-        """Bins N nodes ((N, 3) positions, (N,) ranges, (N, 3) radiance) in numpy, then uploads."""
+        """Bins N nodes ((N, 3) positions, (N,) ranges) in numpy, then uploads; the (N, 3)
+        radiance may come later (:meth:`with_radiance`): the bins do not depend on it."""
         lo = (positions - search_radius[:, None]).min(axis=0)
         hi = (positions + search_radius[:, None]).max(axis=0)
         cell = float(np.median(search_radius))
@@ -103,20 +109,26 @@ class NodeGrid:
         iy = c0[node, 1] + (k // sx) % sy
         iz = c0[node, 2] + k // (sx * sy)
         cell_id = ix + dims[0] * (iy + dims[1] * iz)
-        order = np.argsort(cell_id, kind="stable")
+        order = np.argsort(cell_id.astype(np.int32), kind="stable")  # cells < 2^31: a faster sort
         n_cells = int(dims.prod())
         start = np.zeros(n_cells + 1, np.int64)
         np.cumsum(np.bincount(cell_id, minlength=n_cells), out=start[1:])
         return cls(
-            positions=mi.Point3f(*(positions[:, i].astype(np.float32) for i in range(3))),
-            radius2=mi.Float(search_radius.astype(np.float32) ** 2),
-            radiance=mi.Color3f(*(radiance[:, i].astype(np.float32) for i in range(3))),
-            cell_start=mi.UInt32(start.astype(np.uint32)),
-            entries=mi.UInt32(node[order].astype(np.uint32)),
+            positions=to_jit(mi.Point3f, positions),
+            radius2=to_jit(mi.Float, search_radius.astype(np.float32) ** 2),
+            radiance=None,
+            cell_start=to_jit(mi.UInt32, start, np.uint32),
+            entries=to_jit(mi.UInt32, node[order], np.uint32),
             origin=tuple(float(v) for v in lo),
             cell=cell,
             dims=tuple(int(v) for v in dims),
-        )
+        ).with_radiance(radiance)
+
+    def with_radiance(self, radiance: np.ndarray | None) -> NodeGrid:
+        """The same bins with (N, 3) node radiance."""
+        if radiance is None:
+            return self
+        return replace(self, radiance=to_jit(mi.Color3f, radiance))
 
     @dr.syntax
     def lookup(self, p: mi.Point3f, eps2: float, active: mi.Bool) -> mi.Color3f:

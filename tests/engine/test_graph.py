@@ -418,6 +418,81 @@ def test_the_graph_is_the_same_however_the_work_is_cut(variant, monkeypatch):
         assert x.dtype == y.dtype and x.tobytes() == y.tobytes()
 
 
+def test_the_node_table_holds_what_all_the_samples_at_once_give():
+    # Chunks of random collisions and samples, reduced and merged in shuffled order, against the
+    # same sums, lowest priorities and edge counts computed from all of them at once.
+    from cloudgraph.nodes import FIXED_POINT, MEMBERS_KEPT, NodeTable, reduce_chunk
+
+    rng = np.random.default_rng(3)
+    origin, radius, n_cells = np.zeros(3), 0.5, 700
+    chunks, parts = [], []
+    for _ in range(12):
+        m = int(rng.integers(500, 3000))
+        keys = rng.integers(0, n_cells, m) * 7919  # cell keys need not be dense
+        points = rng.random((m, 3)) * 40.0
+        priority = rng.random(m)
+        src = rng.integers(0, n_cells, m) * 7919
+        dst = np.where(rng.random(m) < 0.2, -1, rng.integers(0, m, m))  # -1: escaped
+        chunks.append((keys, points, priority, src, dst))
+        parts.append(reduce_chunk(keys, points, priority, src, dst, origin, radius))
+    table = NodeTable(origin, radius)
+    order = rng.permutation(len(parts))
+    for i in order[:6]:
+        table.merge(parts[i])
+    half = [chunks[i] for i in order[:6]]
+    for i in order[6:]:
+        table.merge(parts[i])
+
+    def expected(chunks):
+        keys, points, priority = (np.concatenate([c[k] for c in chunks]) for k in range(3))
+        src = np.concatenate([c[3] for c in chunks])
+        first = np.cumsum([0] + [len(c[0]) for c in chunks[:-1]])
+        dst = np.concatenate([np.where(c[4] >= 0, c[4] + f, -1) for c, f in zip(chunks, first, strict=True)])
+        cells = np.unique(np.concatenate([keys, src]))
+        at = {k: i for i, k in enumerate(cells)}
+        n = len(cells)
+        count = np.bincount(np.searchsorted(cells, keys), minlength=n)
+        fixed = np.round((points - origin) / (radius / FIXED_POINT)).astype(np.int64)
+        sums = np.zeros((n, 3), np.int64)
+        np.add.at(sums, np.searchsorted(cells, keys), fixed)
+        kept = np.full((n, MEMBERS_KEPT), np.inf)
+        for k in np.unique(keys):
+            mine = np.flatnonzero(keys == k)
+            low = mine[np.argsort(priority[mine])[:MEMBERS_KEPT]]
+            kept[at[k], : len(low)] = priority[low]
+        out = np.bincount(np.searchsorted(cells, src), minlength=n)
+        hit = dst >= 0
+        a, b = np.searchsorted(cells, src[hit]), np.searchsorted(cells, keys[dst[hit]])
+        edges = sp.csr_matrix((np.ones(hit.sum()), (a, b)), (n, n))
+        return cells, count, sums, kept, out, edges
+
+    cells, count, sums, kept, out, edges = expected(chunks)
+    by_key = table.order
+    assert len(table) == len(cells) and np.array_equal(table.keys[by_key], cells)
+    np.testing.assert_array_equal(table.count[by_key], count)
+    np.testing.assert_array_equal(table.sum[by_key], sums)
+    np.testing.assert_array_equal(table.priority[by_key], kept)
+    np.testing.assert_array_equal(table.out[by_key], out)
+    assert (table.counts[by_key][:, by_key] != edges).nnz == 0
+    # the kept points are those of the kept priorities
+    pri = np.concatenate([c[2] for c in chunks])
+    pts = np.concatenate([c[1] for c in chunks]).astype(np.float32)
+    i = np.searchsorted(np.sort(pri), table.priority[np.isfinite(table.priority)])
+    np.testing.assert_array_equal(table.kept[np.isfinite(table.priority)], pts[np.argsort(pri)][i])
+
+    # Distinct out-edges, asked for while edges still wait to be summed: exact below the bound
+    half_table = NodeTable(origin, radius)
+    for i in order[:6]:
+        half_table.merge(parts[i])
+    assert half_table._edges  # still waiting
+    below = 9
+    got = half_table.out_edges(below)
+    h_cells, *_, h_edges = expected(half)
+    exact = np.diff(h_edges.indptr)[np.searchsorted(h_cells, half_table.keys)]
+    assert np.array_equal(np.minimum(got, below), np.minimum(exact, below))
+    assert (exact < below).sum() > 50 and (exact >= below).sum() > 50  # both kinds were tried
+
+
 def test_build_memory_does_not_grow_with_the_light_paths(variant):
     import tracemalloc
 
