@@ -254,7 +254,7 @@ def bake_field(
     radiance_key: str = "",
     chunks=None,
     marched=None,
-    grid=None,
+    bins=None,
 ) -> tuple[RadianceField, dict]:
     """Bakes the field of a radiance cache (a variant must be set).
 
@@ -266,7 +266,7 @@ def bake_field(
         albedo, irradiance: (3,); light_dir: (3,) direction the light travels.
         chunks: runs the marches' chunks (:func:`field_chunk`), as in ``build_graph``.
         marched: the light march's results (:func:`march_light`), if already put out.
-        grid: the graph's nodes binned (``NodeGrid.build`` without radiance), if already made.
+        bins: the graph's nodes binned (:func:`~cloudgraph.integrators.graph.node_bins`), if made.
 
     Returns:
         (field, stats): stats hold the bake's seconds per part.
@@ -292,7 +292,7 @@ def bake_field(
     # per point (a spherical Fibonacci set, turned at random per point) marched in closed form.
     t0 = time.perf_counter()
     node_G = radiance_gather * np.asarray(albedo, np.float32)[None, :]
-    grid = (grid or NodeGrid.build(graph.positions, graph.search_radius)).with_radiance(node_G)
+    grid = NodeGrid.build(graph.positions, graph.search_radius, node_G, bins)
     G = grid.lookup(_point3f(points), (0.05 * node_radius) ** 2, mi.Bool(True))
     dr.eval(G)  # one kernel for the three channels
     G = np.stack([np.array(c, np.float32) for c in (G.x, G.y, G.z)], axis=1)

@@ -308,12 +308,14 @@ class GraphBuilder:
     (``cells`` keys, ``ends`` running total of flights, ``kept`` collisions and how many
     ``members``) and the ``round``: a few bytes per node, not per flight; and the later
     stages that walk the same medium: the direct lighting of the nodes (``lighting``) and the
-    field bake's marches (``field_tau``, ``field_ms``).
+    field bake's marches (``field_tau``, ``field_ms``); and the nodes binned for the field's
+    lookups (``bins``, one chunk, :func:`~cloudgraph.integrators.graph.node_bins`).
     """
 
     #: Stages put out long before their results are needed (the field's light march, at the start
-    #: of a precompute): workers that share a precompute run them when no other stage has work.
-    late_stages = frozenset({"field_tau"})
+    #: of a precompute; the node bins, before the transport): workers that share a precompute run
+    #: them when no other stage has work.
+    late_stages = frozenset({"field_tau", "bins"})
 
     def __init__(self, volume: Volume, density_scale: float, params: BuildParams):
         self.volume, self.params, self.density_scale = volume, params, density_scale
@@ -341,6 +343,8 @@ class GraphBuilder:
             return -(-self.params.coverage_seeds // CHUNK_SEEDS)
         if stage == "flights":
             return -(-int(inputs["ends"][-1]) // _flight_chunk(inputs))
+        if stage == "bins":
+            return 1
         if stage == "lighting":
             from .lighting import LIGHTING_CHUNK
 
@@ -366,6 +370,10 @@ class GraphBuilder:
             from .field import field_chunk
 
             return field_chunk(self, stage, index, inputs)
+        if stage == "bins":
+            from .integrators.graph import node_bins
+
+            return node_bins(np.asarray(inputs["positions"]), np.asarray(inputs["search_radius"]))
         raise ValueError(f"unknown precompute stage {stage!r}")
 
     def _trace(self, first: int) -> tuple[np.ndarray, ...]:

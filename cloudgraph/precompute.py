@@ -10,7 +10,6 @@ from __future__ import annotations
 import logging
 import time
 import weakref
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -172,11 +171,11 @@ def precompute(
             graph = stored_graph(built, graph_file)  # go on with what is stored: fresh and loaded alike
     if found is None and lit is None:
         light(graph.positions)
-    # The field's node bins need the graph only: made on a thread while this one writes the
-    # graph, and workers that share this precompute light the nodes
-    from .integrators.graph import NodeGrid
-
-    grid = _on_thread(NodeGrid.build, graph.positions, graph.search_radius) if found_field is None else None
+    # The field's node bins need the graph only: put out now, for a worker that shares this
+    # precompute to make while this one solves the transport (a late stage)
+    bins = None
+    if found_field is None:
+        bins = chunks(builder, "bins", {"positions": graph.positions, "search_radius": graph.search_radius})
     if not graph_reused:
         store.save_graph(gkey, graph_file)
     if found is not None:
@@ -221,7 +220,7 @@ def precompute(
             rkey,
             chunks,
             marched,
-            grid.result(),
+            next(iter(bins)),
         )
         data = field.encode()
         store.save_field(rkey, data)
@@ -245,15 +244,6 @@ def precompute(
         "quality": quality,
     }
     return RadianceCache(radiance, radiance_gather, field, keys, stats, store, graph)
-
-
-def _on_thread(fn, *args) -> Future:
-    """fn(*args) run on a thread of its own."""
-    pool = ThreadPoolExecutor(1)
-    try:
-        return pool.submit(fn, *args)
-    finally:
-        pool.shutdown(wait=False)
 
 
 def _size(path) -> int:

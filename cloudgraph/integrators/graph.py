@@ -63,6 +63,39 @@ FIELD_TR_MIN = 1e-3
 # ------------------------------------------------------------------ spatial index
 
 
+def node_bins(positions: np.ndarray, search_radius: np.ndarray, max_cells: int = 1 << 22) -> tuple:
+    """N nodes ((N, 3) positions, (N,) ranges) binned into a uniform grid, in numpy: (cell_start
+    (cells + 1,), entries (node ids by cell), (origin x y z, cell side, dims x y z))."""
+    lo = (positions - search_radius[:, None]).min(axis=0)
+    hi = (positions + search_radius[:, None]).max(axis=0)
+    cell = float(np.median(search_radius))
+    while np.prod(np.ceil((hi - lo) / cell) + 1) > max_cells:
+        cell *= 1.25
+    dims = (np.floor((hi - lo) / cell) + 1).astype(np.int64)
+    # int32 throughout (cells < 2^22, entries < 2^31): half the memory traffic of int64
+    c0 = np.clip(np.floor((positions - search_radius[:, None] - lo) / cell), 0, dims - 1).astype(np.int32)
+    c1 = np.clip(np.floor((positions + search_radius[:, None] - lo) / cell), 0, dims - 1).astype(np.int32)
+    span = c1 - c0 + 1
+    per_node = span.prod(axis=1)
+    node = np.repeat(np.arange(len(positions), dtype=np.int32), per_node)
+    first = np.cumsum(per_node, dtype=np.int32) - per_node
+    k = np.arange(per_node.sum(), dtype=np.int32) - np.repeat(first, per_node)
+    sx, sy = span[node, 0], span[node, 1]
+    ix = c0[node, 0] + k % sx
+    iy = c0[node, 1] + (k // sx) % sy
+    iz = c0[node, 2] + k // (sx * sy)
+    cell_id = ix + np.int32(dims[0]) * (iy + np.int32(dims[1]) * iz)
+    order = np.argsort(cell_id, kind="stable")
+    n_cells = int(dims.prod())
+    start = np.zeros(n_cells + 1, np.int64)
+    np.cumsum(np.bincount(cell_id, minlength=n_cells), out=start[1:])
+    return (
+        start.astype(np.uint32),
+        node[order].astype(np.uint32),
+        np.concatenate([lo, [cell], dims]).astype(float),
+    )
+
+
 @dataclass
 class NodeGrid:
     """Nodes binned into a uniform grid: cell c lists the nodes whose search ball meets it.
@@ -84,44 +117,20 @@ class NodeGrid:
 
     @classmethod
     def build(
-        cls,
-        positions: np.ndarray,
-        search_radius: np.ndarray,
-        radiance: np.ndarray | None = None,
-        max_cells: int = 1 << 22,
+        cls, positions: np.ndarray, search_radius: np.ndarray, radiance: np.ndarray | None = None, bins=None
     ) -> NodeGrid:
-        """Bins N nodes ((N, 3) positions, (N,) ranges) in numpy, then uploads; the (N, 3)
-        radiance may come later (:meth:`with_radiance`): the bins do not depend on it."""
-        lo = (positions - search_radius[:, None]).min(axis=0)
-        hi = (positions + search_radius[:, None]).max(axis=0)
-        cell = float(np.median(search_radius))
-        while np.prod(np.ceil((hi - lo) / cell) + 1) > max_cells:
-            cell *= 1.25
-        dims = (np.floor((hi - lo) / cell) + 1).astype(np.int64)
-        c0 = np.clip(np.floor((positions - search_radius[:, None] - lo) / cell), 0, dims - 1).astype(np.int64)
-        c1 = np.clip(np.floor((positions + search_radius[:, None] - lo) / cell), 0, dims - 1).astype(np.int64)
-        span = c1 - c0 + 1
-        per_node = span.prod(axis=1)
-        node = np.repeat(np.arange(len(positions)), per_node)
-        k = np.arange(per_node.sum()) - np.repeat(np.cumsum(per_node) - per_node, per_node)
-        sx, sy = span[node, 0], span[node, 1]
-        ix = c0[node, 0] + k % sx
-        iy = c0[node, 1] + (k // sx) % sy
-        iz = c0[node, 2] + k // (sx * sy)
-        cell_id = ix + dims[0] * (iy + dims[1] * iz)
-        order = np.argsort(cell_id.astype(np.int32), kind="stable")  # cells < 2^31: a faster sort
-        n_cells = int(dims.prod())
-        start = np.zeros(n_cells + 1, np.int64)
-        np.cumsum(np.bincount(cell_id, minlength=n_cells), out=start[1:])
+        """N nodes ((N, 3) positions, (N,) ranges) binned (:func:`node_bins`, unless given),
+        uploaded; the (N, 3) radiance may come later (:meth:`with_radiance`)."""
+        start, entries, grid = bins if bins is not None else node_bins(positions, search_radius)
         return cls(
             positions=to_jit(mi.Point3f, positions),
             radius2=to_jit(mi.Float, search_radius.astype(np.float32) ** 2),
             radiance=None,
             cell_start=to_jit(mi.UInt32, start, np.uint32),
-            entries=to_jit(mi.UInt32, node[order], np.uint32),
-            origin=tuple(float(v) for v in lo),
-            cell=cell,
-            dims=tuple(int(v) for v in dims),
+            entries=to_jit(mi.UInt32, entries, np.uint32),
+            origin=tuple(float(v) for v in grid[:3]),
+            cell=float(grid[3]),
+            dims=tuple(int(v) for v in grid[4:]),
         ).with_radiance(radiance)
 
     def with_radiance(self, radiance: np.ndarray | None) -> NodeGrid:
