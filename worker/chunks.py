@@ -20,8 +20,9 @@ Keys, under ``cloudgraph:run:<run>:``:
 | stage:<gen>   | JSON {stage, inputs} of the gen-th stage put out (inputs in               |
 |               | ``<dir>/<gen>-<name>.npy``); several can be out at once                   |
 | todo          | tasks ``<gen>:<chunk>`` not yet claimed, oldest stage first               |
-| later         | the same, of stages needed late (GraphBuilder.late_stages): claimed when  |
-|               | todo is empty, so that they fill the gaps the other stages leave          |
+| later         | the same, of stages needed late (GraphBuilder.late_stages), newest stage  |
+|               | first (it is wanted soonest): claimed when todo is empty, so that they    |
+|               | fill the gaps the other stages leave                                      |
 | lease:<task>  | the holder of a claimed task; expires LEASE_S after its last renewal      |
 | done:<gen>    | tasks of that stage finished by helpers (``<dir>/<gen>-<chunk>.npz``)     |
 """
@@ -92,6 +93,16 @@ class _Run:
         keys = [self.key("todo"), self.key("later"), self.key("lease:")]
         t = self._claim(keys=keys, args=[holder, self.lease_ms, int(late)])
         return None if t is None else t.decode()
+
+    def put(self, gen: int, n: int, late: bool) -> None:
+        """Puts the n tasks of stage ``gen`` out: at the end of todo, or (``late``) at the head of
+        later, in order: of the late stages, the last put out is the first wanted (the field's
+        node bins before its light march)."""
+        tasks = [f"{gen}:{i}" for i in range(n)]
+        if late:
+            self.redis.lpush(self.key("later"), *reversed(tasks))
+        else:
+            self.redis.rpush(self.key("todo"), *tasks)
 
     def done(self, gen: int, task: str) -> None:
         """Tells the coordinator that a helper's task is done (unless the run has ended)."""
@@ -214,8 +225,7 @@ class SharedChunks:
         self.pending[gen], self.ready[gen] = set(range(n)), []
         r.redis.set(r.key(f"stage:{gen}"), json.dumps({"stage": stage, "inputs": names}))
         if n:
-            todo = r.key("later" if stage in builder.late_stages else "todo")
-            r.redis.rpush(todo, *(f"{gen}:{i}" for i in range(n)))
+            r.put(gen, n, stage in builder.late_stages)
         if self.helpers is None:  # the first stage: helpers are asked for once the spec is whole
             self.spec["params"] = builder.params.to_dict()
             self._set_spec()
