@@ -303,10 +303,10 @@ class GraphBuilder:
     graph, since a :class:`NodeTable` is the same whatever the order of its merges.
 
     Stages: ``trace``, light paths from index * CHUNK_PATHS on; ``seeds``, coverage seeds from
-    index * CHUNK_SEEDS on; ``flights``, reinforcement
-    flights from index * CHUNK_FLIGHTS on of one round, with inputs per node short of samples
-    (``cells`` keys, ``ends`` running total of flights, ``kept`` collisions and how many
-    ``members``) and the ``round``: a few bytes per node, not per flight; and the later
+    index * CHUNK_SEEDS on; ``flights``, reinforcement flights of one round in chunks of at most
+    CHUNK_FLIGHTS (:func:`_flight_chunk`), with inputs per node short of samples (``cells``
+    keys, ``ends`` running total of flights, ``kept`` collisions and how many ``members``) and
+    the ``round``: a few bytes per node, not per flight; and the later
     stages that walk the same medium: the direct lighting of the nodes (``lighting``) and the
     field bake's marches (``field_tau``, ``field_ms``); and the nodes binned for the field's
     lookups (``bins``, one chunk, :func:`~cloudgraph.integrators.graph.node_bins`).
