@@ -1,8 +1,11 @@
 """Scale benchmark of one precompute over several workers (README, "Scale"): the same cache
 built through the service by 1 and by N workers of one Dr.Jit thread each, each in a fresh
 service (kernels compiled in every run alike), and whether the cache files are the same bytes.
+Runs alternate (1, N, 1, N, ...) and the speed-up is the ratio of the medians: a shared
+machine's pace drifts over minutes, which a single pair of runs reads as a change of speed-up.
 
     .venv/bin/python bench/scale_workers.py [--volume ../shared/data/smoke1.vdb] [--workers 2]
+        [--repeats 3]
 """
 
 from __future__ import annotations
@@ -13,6 +16,8 @@ import shutil
 import sys
 import time
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -56,12 +61,17 @@ def main() -> None:
     ap.add_argument("--volume", default=str(ROOT.parent / "shared" / "data" / "smoke1.vdb"))
     ap.add_argument("--quality", default="default")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args()
     volume = Path(args.volume)
-    one_s, one, one_times = precompute_through(1, volume, args.quality, Path("/tmp/cloudgraph-scale-1"))
-    n_s, many, n_times = precompute_through(
-        args.workers, volume, args.quality, Path("/tmp/cloudgraph-scale-n")
-    )
+    one_runs, n_runs, same = [], [], True
+    for _ in range(args.repeats):
+        one_s, one, one_times = precompute_through(1, volume, args.quality, Path("/tmp/cloudgraph-scale-1"))
+        n_s, many, n_times = precompute_through(
+            args.workers, volume, args.quality, Path("/tmp/cloudgraph-scale-n")
+        )
+        one_runs, n_runs, same = one_runs + [round(one_s, 2)], n_runs + [round(n_s, 2)], same and one == many
+    one_s, n_s = float(np.median(one_runs)), float(np.median(n_runs))
     result = {
         "machine": machine(),
         "volume": volume.name,
@@ -70,7 +80,10 @@ def main() -> None:
         "one_worker_s": round(one_s, 2),
         f"{args.workers}_workers_s": round(n_s, 2),
         "speedup": round(one_s / n_s, 2),
-        "same_bytes": one == many,
+        "one_worker_runs_s": one_runs,
+        f"{args.workers}_workers_runs_s": n_runs,
+        "pair_speedups": [round(a / b, 2) for a, b in zip(one_runs, n_runs, strict=True)],
+        "same_bytes": same,
         "one_worker_stages": one_times,
         f"{args.workers}_workers_stages": n_times,
         "files": sorted(one),
