@@ -46,12 +46,12 @@ def test_a_running_precompute_stops_at_its_next_report_and_the_api_stays_quick(s
     smoke = upload(client, SMOKE)
     assert smoke.status_code in (200, 201), smoke.text
     before = cache_files(svc)
-    r = client.post("/v1/caches", json=cache_of(smoke_scene(smoke.json()["id"], 0.37), "default"))
+    r = client.post("/v1/caches", json=cache_of(smoke_scene(smoke.json()["id"], 0.37), "high"))
     assert r.status_code == 202, r.text
     job = job_of(r)
     wait_stage(client, job)
 
-    latencies = []  # the worker is busy with a precompute of 40 s or so
+    latencies = []  # the worker is busy with a precompute of half a minute or more
     for _ in range(10):
         t0 = time.perf_counter()
         assert client.get("/healthz").status_code == 200
