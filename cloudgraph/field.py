@@ -216,7 +216,7 @@ class FieldPoints:
             density = np.ascontiguousarray(volume.density.transpose(2, 1, 0), np.float32)
             sigma_t = density * np.float32(medium.scale)
         else:
-            sigma_t = np.array(medium.sigma_t(_point3f(_to_world(u2w, units))), np.float32)
+            sigma_t = np.array(medium.sigma_t(to_jit(mi.Point3f, _to_world(u2w, units))), np.float32)
             sigma_t = sigma_t.reshape(nz, ny, nx)
         # Trilinear interpolation at any point of the medium reads 8 grid points, all within one
         # voxel of a non-zero one
@@ -228,10 +228,6 @@ class FieldPoints:
 
 def _to_world(u2w: np.ndarray, u: np.ndarray) -> np.ndarray:
     return u @ u2w[:3, :3].T + u2w[:3, 3]
-
-
-def _point3f(w: np.ndarray) -> mi.Point3f:
-    return to_jit(mi.Point3f, w)
 
 
 def march_light(builder, light_dir, chunks):
@@ -293,7 +289,7 @@ def bake_field(
     t0 = time.perf_counter()
     node_G = radiance_gather * np.asarray(albedo, np.float32)[None, :]
     grid = NodeGrid.build(graph.positions, graph.search_radius, node_G, bins)
-    G = grid.lookup(_point3f(points), (0.05 * node_radius) ** 2, mi.Bool(True))
+    G = grid.lookup(to_jit(mi.Point3f, points), (0.05 * node_radius) ** 2, mi.Bool(True))
     dr.eval(G)  # one kernel for the three channels
     G = np.stack([np.array(c, np.float32) for c in (G.x, G.y, G.z)], axis=1)
     G = _scatter(near, fill_unreached(G, points, graph.positions, node_G), (nz, ny, nx, 3))

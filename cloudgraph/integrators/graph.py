@@ -37,7 +37,7 @@ block with the field's majorant grid.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
@@ -117,27 +117,21 @@ class NodeGrid:
 
     @classmethod
     def build(
-        cls, positions: np.ndarray, search_radius: np.ndarray, radiance: np.ndarray | None = None, bins=None
+        cls, positions: np.ndarray, search_radius: np.ndarray, radiance: np.ndarray, bins=None
     ) -> NodeGrid:
-        """N nodes ((N, 3) positions, (N,) ranges) binned (:func:`node_bins`, unless given),
-        uploaded; the (N, 3) radiance may come later (:meth:`with_radiance`)."""
+        """N nodes ((N, 3) positions, (N,) ranges, (N, 3) radiance) binned (:func:`node_bins`,
+        unless given), then uploaded."""
         start, entries, grid = bins if bins is not None else node_bins(positions, search_radius)
         return cls(
             positions=to_jit(mi.Point3f, positions),
             radius2=to_jit(mi.Float, search_radius.astype(np.float32) ** 2),
-            radiance=None,
+            radiance=to_jit(mi.Color3f, radiance),
             cell_start=to_jit(mi.UInt32, start, np.uint32),
             entries=to_jit(mi.UInt32, entries, np.uint32),
             origin=tuple(float(v) for v in grid[:3]),
             cell=float(grid[3]),
             dims=tuple(int(v) for v in grid[4:]),
-        ).with_radiance(radiance)
-
-    def with_radiance(self, radiance: np.ndarray | None) -> NodeGrid:
-        """The same bins with (N, 3) node radiance."""
-        if radiance is None:
-            return self
-        return replace(self, radiance=to_jit(mi.Color3f, radiance))
+        )
 
     @dr.syntax
     def lookup(self, p: mi.Point3f, eps2: float, active: mi.Bool) -> mi.Color3f:
