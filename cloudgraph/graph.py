@@ -42,7 +42,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from .nodes import MEMBERS_KEPT, NodeCells, NodeTable, reduce_chunk, uniform_hash
-from .tracing import DensityField, jit_rng, sample_collision, to_jit, uniform_sphere
+from .tracing import DensityField, cpu_threads, jit_rng, sample_collision, to_jit, uniform_sphere
 from .volume import Volume, voxel_points
 
 log = logging.getLogger(__name__)
@@ -306,10 +306,10 @@ class GraphBuilder:
     index * CHUNK_SEEDS on; ``flights``, reinforcement flights of one round in chunks of at most
     CHUNK_FLIGHTS (:func:`_flight_chunk`), with inputs per node short of samples (``cells``
     keys, ``ends`` running total of flights, ``kept`` collisions and how many ``members``) and
-    the ``round``: a few bytes per node, not per flight; and the later
-    stages that walk the same medium: the direct lighting of the nodes (``lighting``) and the
-    field bake's marches (``field_tau``, ``field_ms``); and the nodes binned for the field's
-    lookups (``bins``, one chunk, :func:`~cloudgraph.integrators.graph.node_bins`).
+    the ``round``: a few bytes per node, not per flight; and the later stages: the direct
+    lighting of the nodes (``lighting``); the nodes binned for the field's lookups (``bins``, one
+    chunk, :func:`~cloudgraph.integrators.graph.node_bins`); and the field bake's light march,
+    node lookups and gathers (``field_tau``, ``field_lookup``, ``field_ms``).
     """
 
     #: Stages put out long before their results are needed (the field's light march, at the start
@@ -354,8 +354,8 @@ class GraphBuilder:
         return field_chunks(self, stage, inputs)
 
     def chunk(self, stage: str, index: int, inputs: dict | None = None) -> tuple[np.ndarray, ...]:
-        """One chunk's results: collisions and samples reduced (:func:`reduce_chunk`), or
-        the field bake's (``field_tau``, ``field_ms``: :func:`~cloudgraph.field.field_chunk`)."""
+        """One chunk's results: collisions and samples reduced (:func:`reduce_chunk`), or the
+        later stages' (the field bake's: :func:`~cloudgraph.field.field_chunk`)."""
         if stage == "trace":
             return self._trace(index * CHUNK_PATHS)
         if stage == "seeds":
@@ -366,7 +366,7 @@ class GraphBuilder:
             from .lighting import lighting_chunk
 
             return lighting_chunk(self.field, index, inputs)
-        if stage in ("field_tau", "field_ms"):
+        if stage in ("field_tau", "field_lookup", "field_ms"):
             from .field import field_chunk
 
             return field_chunk(self, stage, index, inputs)
@@ -469,6 +469,7 @@ def build_graph(
     chunks=local_chunks,
     builder: GraphBuilder | None = None,
     nodes_found=None,
+    started=None,
 ) -> Graph:
     """Builds the graph of a volume and density scale (a variant must be set).
 
@@ -476,8 +477,11 @@ def build_graph(
     puts a stage's chunks (:meth:`GraphBuilder.chunk`) out and returns an iterator of their
     results in any order: run here as it is iterated by default, or spread over workers (who
     may start before it is iterated); the graph is the same bytes either way. ``builder``:
-    one already made for these arguments. ``nodes_found(positions)`` is called with the graph's
-    node positions as soon as they are known, before its search ranges and edges are made.
+    one already made for these arguments. ``started()`` is called once the light paths and
+    coverage seeds are out, before any is merged: work of the caller's own that other workers
+    can start on goes out there, after the build's first. ``nodes_found(positions)`` is called
+    with the graph's node positions as soon as they are known, before its search ranges and
+    edges are made.
     """
     progress = progress or (lambda stage, fraction: None)
     t_start = time.perf_counter()
@@ -491,6 +495,8 @@ def build_graph(
     # proportion to density seed nodes there too; reinforcement then gives every node its own
     # outgoing samples.
     stages = [chunks(builder, "trace"), chunks(builder, "seeds")]
+    if started is not None:
+        started()
     n = builder.n_chunks("trace") + builder.n_chunks("seeds")
     for i, result in enumerate(chain(*stages)):
         table.merge(result)
@@ -534,7 +540,7 @@ def build_graph(
     counts = sp.csr_matrix(table.counts[by_key][:, by_key])
     counts.sort_indices()
     kq = min(params.search_k + 1, n)
-    dk, _ = cKDTree(nodes).query(nodes, k=kq, workers=-1)
+    dk, _ = cKDTree(nodes).query(nodes, k=kq, workers=cpu_threads())
     kth = dk[:, -1] if kq > 1 else np.full(n, params.radius)
     search = np.maximum(kth, params.radius).astype(np.float32)  # Eq. 4.21: R_a = max(d_k(a), r)
     t_group = time.perf_counter() - t0

@@ -139,7 +139,7 @@ def precompute(
 
     found = store.load_radiance(rkey)
     found_field = store.load_field(rkey)
-    graph, graph_reused, builder, lit, t_light = None, True, None, None, 0.0
+    graph, graph_reused, builder, lit, t_light, marched = None, True, None, None, 0.0, None
 
     def light(positions):
         # The direct light's chunks, at the node positions as stored, go out as soon as the
@@ -151,10 +151,19 @@ def precompute(
 
     if found is None or found_field is None:  # the graph is needed: read it, or build it
         builder = GraphBuilder(volume, scene.medium.density_scale, params)
-        # The field's light march needs the medium and the light only: it goes out first, for
-        # workers that share this precompute to run whenever the other stages leave them idle
-        # (GraphBuilder.late_stages)
-        marched = march_light(builder, light_dir, chunks) if found_field is None else None
+
+        def march():
+            # The field's light march needs the medium and the light only: it goes out early,
+            # for workers that share this precompute to run whenever the other stages leave them
+            # idle (GraphBuilder.late_stages): before the graph is read, or right after a new
+            # graph's light paths (helpers start on those while this worker finds the field's
+            # points)
+            nonlocal marched
+            if marched is None and found_field is None:
+                marched = march_light(builder, light_dir, chunks)
+
+        if store.graph_path(gkey).is_file():
+            march()
         graph = store.load_graph(gkey)
         graph_reused = graph is not None
         if graph is None:
@@ -166,6 +175,7 @@ def precompute(
                 chunks,
                 builder,
                 nodes_found=(lambda p: light(stored_positions(p))) if found is None else None,
+                started=march,
             )
             graph_file = pack_graph(built)
             graph = stored_graph(built, graph_file)  # go on with what is stored: fresh and loaded alike
@@ -176,8 +186,6 @@ def precompute(
     bins = None
     if found_field is None:
         bins = chunks(builder, "bins", {"positions": graph.positions, "search_radius": graph.search_radius})
-    if not graph_reused:
-        store.save_graph(gkey, graph_file)
     if found is not None:
         (radiance, radiance_gather), rstats = found
     else:
@@ -205,6 +213,11 @@ def precompute(
             "transport_s": round(t_transport, 3),
             "transport_iterations": iterations,
         }
+    # The graph is written after the transport, not when made: a worker that shares this
+    # precompute makes the field's node bins meanwhile, which the field waits for
+    if not graph_reused:
+        store.save_graph(gkey, graph_file)
+    if found is None:
         store.save_radiance(rkey, radiance_file, rstats)
     if found_field is not None:
         field, fstats = RadianceField.decode(found_field), {}

@@ -231,6 +231,12 @@ def jit_rng(size: int, initstate, initseq) -> mi.PCG32:
     return mi.PCG32(size, initstate=seed(initstate), initseq=seed(initseq))
 
 
+def cpu_threads() -> int:
+    """Threads for CPU work outside Dr.Jit (k-d tree queries): as many as Dr.Jit's pool has, so
+    that a worker limited to n threads (WORKER_THREADS) uses n throughout."""
+    return max(1, dr.thread_count())
+
+
 def to_jit(cls, a: np.ndarray, dtype=np.float32):
     """numpy data as the Dr.Jit type ``cls``: (N,) for a flat type, (N, k) for a k-vector one,
     each column copied to 64-byte-aligned memory first."""

@@ -363,7 +363,7 @@ def test_moving_the_camera_launches_only_kernels_already_compiled(sphere, estima
     assert not new, f"kernels compiled for the moved camera: {new}"
 
 
-def test_chunks_at_other_offsets_launch_only_kernels_already_compiled(variant):
+def test_chunks_at_other_offsets_launch_only_kernels_already_compiled(variant, monkeypatch):
     # A chunk's offset and seeds are opaque to its kernels, and numpy inputs are copied to aligned
     # memory: as literals, or read where numpy put them, every chunk compiled its own kernel
     # (0.1 s each, about 7 s of a blender precompute on a fresh machine).
@@ -388,7 +388,16 @@ def test_chunks_at_other_offsets_launch_only_kernels_already_compiled(variant):
         "samples": np.array([2]),
         "seed": np.array([5]),
     }
-    for stage, inputs in (("trace", None), ("flights", flights), ("lighting", lit)):
+    import cloudgraph.field as field_module
+    from cloudgraph.integrators.graph import node_bins
+
+    monkeypatch.setitem(field_module._CHUNK, "field_lookup", 256)  # field points: 256 a chunk
+    nodes, ranges = points[:300].astype(np.float32), np.full(300, 2.0, np.float32)
+    start, entries, grid = node_bins(nodes, ranges)
+    looked = {"positions": nodes, "search_radius": ranges, "G": np.ones((300, 3), np.float32)}
+    looked.update(start=start, entries=entries, grid=grid)
+    stages = (("trace", None), ("flights", flights), ("lighting", lit), ("field_lookup", looked))
+    for stage, inputs in stages:
         assert builder.n_chunks(stage, inputs) >= 3, stage
         builder.chunk(stage, 0, inputs)  # the first of a process may differ (inputs made lazily)
         _, new = kernels_compiled_by_the_second(
