@@ -284,8 +284,10 @@ GRAPH_LIGHTS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1]
 
 #: Light paths per tracing chunk, and flights per reinforcement chunk: collisions are reduced to
 #: per-node sums chunk by chunk, so memory does not grow with the number of light paths. Fixed
-#: sizes: the graph does not depend on how the work is cut.
-CHUNK_PATHS = 1 << 14
+#: sizes: the graph does not depend on how the work is cut. Each chunk is merged on the
+#: coordinator of a shared build: 2^15 light paths a chunk, not 2^14, took smoke1's merges from
+#: 1.3 to 0.8 s, with the same graph.
+CHUNK_PATHS = 1 << 15
 CHUNK_SEEDS = 1 << 18
 CHUNK_FLIGHTS = 1 << 18
 #: A round of reinforcement is cut into at least this many chunks (of 2^12 flights or more), so
