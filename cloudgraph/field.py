@@ -59,6 +59,7 @@ from .tracing import (
     linear_texture,
     step_length,
     to_jit,
+    towards_light,
 )
 
 MAGIC = b"CGFIELD1"
@@ -238,7 +239,7 @@ def march_light(builder, light_dir, chunks):
     every field point, Eq. 4.22 at a point, deterministic) and returns the iterator of its
     results. It needs the medium and the light only, so a precompute puts it out before the
     graph is written (precompute.py)."""
-    to_light = -np.asarray(light_dir, float) / np.linalg.norm(light_dir)
+    to_light = towards_light(light_dir)
     step = np.array([TAU_STEP * builder.field_points.voxel])
     return chunks(builder, "field_tau", {"to_light": to_light, "step": step})
 
@@ -280,7 +281,7 @@ def bake_field(
     fp = builder.field_points
     shape, near, points, voxel = fp.shape, fp.near, fp.points, fp.voxel
     nx, ny, nz = shape
-    to_light = -np.asarray(light_dir, float) / np.linalg.norm(light_dir)
+    to_light = towards_light(light_dir)
     marched = marched if marched is not None else march_light(builder, light_dir, chunks)
 
     # Multiple scattering, as ``gather`` computes it but on the grid: one more flight from the

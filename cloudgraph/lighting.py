@@ -19,7 +19,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .tracing import DensityField, jit_rng, ratio_tracking, to_jit
+from .tracing import DensityField, jit_rng, ratio_tracking, to_jit, towards_light
 
 #: Nodes per chunk of the direct lighting (chunks may run on other workers, worker/chunks.py).
 LIGHTING_CHUNK = 1 << 15
@@ -54,7 +54,7 @@ def direct_radiance(
     rng = jit_rng(m, seed + lane, lane)  # lane j: first * samples + j added to both
     node = dr.arange(mi.UInt32, m) // samples
     o = dr.gather(mi.Point3f, to_jit(mi.Point3f, positions), node)
-    to_light = -np.asarray(light_dir, float) / np.linalg.norm(light_dir)
+    to_light = towards_light(light_dir)
     Tr = ratio_tracking(field, o, mi.Vector3f(*(float(c) for c in to_light)), rng, mi.Bool(True))
     # Mean over each node's estimates (in numpy: a fixed summation order on every backend)
     transmittance = np.array(Tr, np.float64).reshape(n, samples).mean(axis=1)

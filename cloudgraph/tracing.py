@@ -231,6 +231,11 @@ def jit_rng(size: int, initstate, initseq) -> mi.PCG32:
     return mi.PCG32(size, initstate=seed(initstate), initseq=seed(initseq))
 
 
+def towards_light(light_dir) -> np.ndarray:
+    """(3,) unit vector towards a directional light that travels along ``light_dir``."""
+    return -np.asarray(light_dir, float) / np.linalg.norm(light_dir)
+
+
 def cpu_threads() -> int:
     """Threads for CPU work outside Dr.Jit (k-d tree queries): as many as Dr.Jit's pool has, so
     that a worker limited to n threads (WORKER_THREADS) uses n throughout."""
