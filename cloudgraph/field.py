@@ -202,7 +202,8 @@ class FieldPoints:
     """The field grid of a medium: its ``shape`` (nx, ny, nz), sigma_t at its points (nz, ny,
     nx), which points are baked (``near``, flat: within one voxel of some density; the rest stay
     zero) and where those are (``points``, (M, 3) world), ``voxel`` its smallest world step.
-    Made once a process (``GraphBuilder.field_points``), from the medium alone."""
+    Made once, by the process that bakes the field (``GraphBuilder.field_points``), from the
+    medium alone; the bake's chunks get the points they need as inputs."""
 
     shape: tuple
     sigma_t: np.ndarray
@@ -239,9 +240,9 @@ def march_light(builder, light_dir, chunks):
     every field point, Eq. 4.22 at a point, deterministic) and returns the iterator of its
     results. It needs the medium and the light only, so a precompute puts it out before the
     graph is written (precompute.py)."""
-    to_light = towards_light(light_dir)
-    step = np.array([TAU_STEP * builder.field_points.voxel])
-    return chunks(builder, "field_tau", {"to_light": to_light, "step": step})
+    fp, to_light = builder.field_points, towards_light(light_dir)
+    step = np.array([TAU_STEP * fp.voxel])
+    return chunks(builder, "field_tau", {"points": fp.points, "to_light": to_light, "step": step})
 
 
 def bake_field(
@@ -294,9 +295,9 @@ def bake_field(
     node_G = radiance_gather * np.asarray(albedo, np.float32)[None, :]
     start, entries, grid = bins if bins is not None else node_bins(graph.positions, graph.search_radius)
     nodes = {"positions": graph.positions, "search_radius": graph.search_radius, "G": node_G}
-    looked = chunks(builder, "field_lookup", {**nodes, "start": start, "entries": entries, "grid": grid})
-    G = placed(looked, len(points), 3)
-    G = _scatter(near, fill_unreached(G, points, graph.positions, node_G), (nz, ny, nx, 3))
+    bins = {"start": start, "entries": entries, "grid": grid}
+    looked = chunks(builder, "field_lookup", {"points": points, **nodes, **bins})
+    G = _scatter(near, placed(looked, len(points), 3), (nz, ny, nx, 3))
     k = MS_COARSEN  # coarser still where the points to gather would be over MS_MAX_POINTS
     while True:
         ms_shape = tuple(-(-n // k) for n in shape)
@@ -342,17 +343,17 @@ def bake_field(
 
 
 def field_chunk(builder, stage: str, index: int, inputs: dict) -> tuple[np.ndarray, np.ndarray]:
-    """One chunk of the bake: ``field_tau``, optical depth to the light (``to_light``) from the
-    field's points (``builder.field_points``); ``field_lookup``, albedo L'_search (Eq. 4.25) at
-    them from the nodes' ``positions``, ``search_radius`` and ``G``, binned (``start``,
-    ``entries``, ``grid``: :func:`~cloudgraph.integrators.graph.node_bins`); ``field_ms``, the
-    multiple-scattering gather through ``G`` from its ``points`` (world units). Returns (first
-    point, values): chunks may come back in any order, from any worker (worker/chunks.py), and
-    each gives the same values wherever it runs."""
+    """One chunk of the bake, at its ``points`` (world units): ``field_tau``, optical depth to the
+    light (``to_light``); ``field_lookup``, albedo L'_search (Eq. 4.25) from the nodes'
+    ``positions``, ``search_radius`` and ``G``, binned (``start``, ``entries``, ``grid``:
+    :func:`~cloudgraph.integrators.graph.node_bins`); ``field_ms``, the multiple-scattering
+    gather through the grid ``G``. Returns (first point, values): chunks may come back in any
+    order, from any worker (worker/chunks.py), and each gives the same values wherever it runs.
+    The points come as inputs: the field's grid (``builder.field_points``, 0.4 s on smoke1) is
+    made once, by the coordinator."""
     size, medium = _CHUNK[stage], builder.field
     a = index * size
-    q = inputs["points"] if stage == "field_ms" else builder.field_points.points
-    q = np.asarray(q[a : a + size], np.float32)
+    q = np.asarray(inputs["points"][a : a + size], np.float32)
     if stage == "field_lookup":
         return np.array([a]), _lookup(inputs, q, builder.params.radius)
     step = float(inputs["step"][0])
@@ -365,20 +366,22 @@ def field_chunk(builder, stage: str, index: int, inputs: dict) -> tuple[np.ndarr
     return np.array([a]), values
 
 
-def field_chunks(builder, stage: str, inputs: dict) -> int:
-    points = inputs["points"] if stage == "field_ms" else builder.field_points.points
-    return -(-len(points) // _CHUNK[stage])
+def field_chunks(stage: str, inputs: dict) -> int:
+    return -(-len(inputs["points"]) // _CHUNK[stage])
 
 
 def _lookup(inputs: dict, q: np.ndarray, node_radius: float) -> np.ndarray:
-    """(M, 3) L'_search of the nodes' ``G`` at (M, 3) points q (a ``field_lookup`` chunk)."""
+    """(M, 3) L'_search of the nodes' ``G`` at (M, 3) points q (a ``field_lookup`` chunk), and
+    where no node reaches, the nearest node's (:func:`fill_unreached`)."""
     from .integrators.graph import NodeGrid
 
-    node = [np.asarray(inputs[k]) for k in ("positions", "search_radius", "G")]
-    grid = NodeGrid.build(*node, tuple(np.asarray(inputs[k]) for k in ("start", "entries", "grid")))
+    positions, search_radius, node_G = (np.asarray(inputs[k]) for k in ("positions", "search_radius", "G"))
+    bins = tuple(np.asarray(inputs[k]) for k in ("start", "entries", "grid"))
+    grid = NodeGrid.build(positions, search_radius, node_G, bins)
     G = grid.lookup(to_jit(mi.Point3f, q), (0.05 * node_radius) ** 2, mi.Bool(True))
     dr.eval(G)  # one kernel for the three channels
-    return np.stack([np.array(c, np.float32) for c in (G.x, G.y, G.z)], axis=1)
+    G = np.stack([np.array(c, np.float32) for c in (G.x, G.y, G.z)], axis=1)
+    return fill_unreached(G, q, positions, node_G)
 
 
 def _scatter(mask: np.ndarray, values: np.ndarray, shape) -> np.ndarray:

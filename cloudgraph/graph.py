@@ -353,7 +353,7 @@ class GraphBuilder:
             return -(-len(inputs["positions"]) // LIGHTING_CHUNK)
         from .field import field_chunks
 
-        return field_chunks(self, stage, inputs)
+        return field_chunks(stage, inputs)
 
     def chunk(self, stage: str, index: int, inputs: dict | None = None) -> tuple[np.ndarray, ...]:
         """One chunk's results: collisions and samples reduced (:func:`reduce_chunk`), or the

@@ -394,7 +394,7 @@ def test_chunks_at_other_offsets_launch_only_kernels_already_compiled(variant, m
     monkeypatch.setitem(field_module._CHUNK, "field_lookup", 256)  # field points: 256 a chunk
     nodes, ranges = points[:300].astype(np.float32), np.full(300, 2.0, np.float32)
     start, entries, grid = node_bins(nodes, ranges)
-    looked = {"positions": nodes, "search_radius": ranges, "G": np.ones((300, 3), np.float32)}
+    looked = {"points": points, "positions": nodes, "search_radius": ranges, "G": np.ones((300, 3))}
     looked.update(start=start, entries=entries, grid=grid)
     stages = (("trace", None), ("flights", flights), ("lighting", lit), ("field_lookup", looked))
     for stage, inputs in stages:
