@@ -295,8 +295,8 @@ def bake_field(
     node_G = radiance_gather * np.asarray(albedo, np.float32)[None, :]
     start, entries, grid = bins if bins is not None else node_bins(graph.positions, graph.search_radius)
     nodes = {"positions": graph.positions, "search_radius": graph.search_radius, "G": node_G}
-    bins = {"start": start, "entries": entries, "grid": grid}
-    looked = chunks(builder, "field_lookup", {"points": points, **nodes, **bins})
+    binned = {"start": start, "entries": entries, "grid": grid}
+    looked = chunks(builder, "field_lookup", {"points": points, **nodes, **binned})
     G = _scatter(near, placed(looked, len(points), 3), (nz, ny, nx, 3))
     k = MS_COARSEN  # coarser still where the points to gather would be over MS_MAX_POINTS
     while True:
