@@ -55,6 +55,7 @@ from .tracing import (
     block_majorant,
     cpu_threads,
     exponential_segment,
+    from_jit,
     jit_rng,
     linear_texture,
     step_length,
@@ -380,8 +381,7 @@ def _lookup(inputs: dict, q: np.ndarray, node_radius: float) -> np.ndarray:
     grid = NodeGrid.build(positions, search_radius, node_G, bins)
     G = grid.lookup(to_jit(mi.Point3f, q), (0.05 * node_radius) ** 2, mi.Bool(True))
     dr.eval(G)  # one kernel for the three channels
-    G = np.stack([np.array(c, np.float32) for c in (G.x, G.y, G.z)], axis=1)
-    return fill_unreached(G, q, positions, node_G)
+    return fill_unreached(from_jit(G), q, positions, node_G)
 
 
 def _scatter(mask: np.ndarray, values: np.ndarray, shape) -> np.ndarray:
@@ -453,7 +453,7 @@ def _gather_ms(medium, G_tex, points: np.ndarray, step: float, seed: int) -> np.
     o = dr.gather(mi.Point3f, to_jit(mi.Point3f, points), point)
     L = _march_ms(medium, G_tex, o, d, step)
     dr.eval(L)  # one kernel: read channel by channel, each would run the march again
-    out = np.stack([np.array(c, np.float64) for c in (L.x, L.y, L.z)], axis=1)
+    out = from_jit(L, np.float64)
     return out.reshape(m, k, 3).mean(axis=1).astype(np.float32)
 
 

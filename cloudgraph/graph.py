@@ -42,7 +42,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from .nodes import MEMBERS_KEPT, NodeCells, NodeTable, reduce_chunk, uniform_hash
-from .tracing import DensityField, cpu_threads, jit_rng, sample_collision, to_jit, uniform_sphere
+from .tracing import DensityField, cpu_threads, from_jit, jit_rng, sample_collision, to_jit, uniform_sphere
 from .volume import Volume, voxel_points
 
 log = logging.getLogger(__name__)
@@ -260,7 +260,7 @@ def trace_flights(
     t, collided = sample_collision(field, o, d, rng, mi.Bool(True))
     p = o + t * d
     dr.eval(p, collided)  # one kernel: read one by one, each output would run the walk again
-    return np.stack([np.array(c) for c in (p.x, p.y, p.z)], axis=1), np.array(collided, bool)
+    return from_jit(p), np.array(collided, bool)
 
 
 def density_points(volume: Volume, index: np.ndarray, seed: int, cdf: np.ndarray | None = None) -> np.ndarray:

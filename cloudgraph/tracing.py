@@ -251,6 +251,12 @@ def to_jit(cls, a: np.ndarray, dtype=np.float32):
     return cls(*(_aligned(a[:, i], dtype) for i in range(a.shape[1])))
 
 
+def from_jit(v, dtype=np.float32) -> np.ndarray:
+    """(N, 3) numpy array of a Dr.Jit 3-vector (the inverse of :func:`to_jit`); evaluate ``v``
+    first, or each component runs its kernel again."""
+    return np.stack([np.array(c, dtype) for c in (v.x, v.y, v.z)], axis=1)
+
+
 def _aligned(a: np.ndarray, dtype) -> np.ndarray:
     buf = np.empty(a.size * np.dtype(dtype).itemsize + 64, np.uint8)
     start = -buf.ctypes.data % 64
