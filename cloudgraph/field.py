@@ -37,10 +37,12 @@ point where sigma_t > 0 reads no other.
 
 from __future__ import annotations
 
+import dataclasses
 import gzip
 import json
 import struct
 import time
+import zlib
 from dataclasses import dataclass
 
 import drjit as dr
@@ -103,6 +105,8 @@ class RadianceField:
         radiance_ms: (mz, my, mx, 3) in-scattered radiance after the first scattering.
         majorant: (bz, by, bx) max sigma_t per block of BLOCK^3 field voxels.
         meta: the header (without ``arrays``): unit_to_world, light, albedo, step, ...
+        packed: arrays already encoded for :meth:`encode` (:func:`_pack` of the arrays as they
+            are): a bake packs the ones it has while its last chunks run.
     """
 
     sigma_t: np.ndarray
@@ -111,30 +115,17 @@ class RadianceField:
     majorant: np.ndarray
     meta: dict
 
+    packed: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
+
     def encode(self) -> bytes:
-        """The gzip-compressed binary layout (module docstring)."""
-        arrays = {
-            "sigma_t": self.sigma_t,
-            "tau_light": self.tau_light,
-            "radiance_ms": self.radiance_ms,
-            "majorant": self.majorant,
-        }
-        blobs, table, offset = [], {}, 0
-        for name, a in arrays.items():
-            a = np.asarray(a, np.float32)
-            peak = a.reshape(-1, a.shape[-1]).max(axis=0) if name == "radiance_ms" else a.max(initial=0.0)
-            scale = np.where(np.asarray(peak) > 0, peak, 1.0)
-            raw = np.ascontiguousarray(a / scale, "<f2").tobytes()
-            table[name] = {
-                "dtype": "float16",
-                "shape": list(a.shape),
-                "offset": offset,  # relative to the data section; made absolute below
-                "scale": np.asarray(scale, float).tolist(),
-            }
-            if name == "majorant":
-                table[name]["block"] = BLOCK
-            blobs.append(raw + b"\0" * (-len(raw) % 16))
-            offset += len(blobs[-1])
+        """The gzip-compressed binary layout (module docstring): one gzip member whose deflate
+        stream is the header's and each array's, each deflated on its own (:func:`_deflate`), so
+        that arrays can be packed as soon as they are known."""
+        packed = {name: self.packed.get(name) or _pack(name, getattr(self, name)) for name in ARRAYS}
+        table, offset = {}, 0
+        for name in ARRAYS:
+            table[name] = {**packed[name][0], "offset": offset}  # relative to the data section
+            offset += len(packed[name][1])
         header = {"format": "cloudgraph-field", "version": VERSION, **self.meta, "arrays": table}
         # Offsets are from the start of the body, and the header's length moves the data: grow
         # the data's start until the header fits in front of it.
@@ -146,9 +137,13 @@ class RadianceField:
                 break
             start = need
         head = MAGIC + struct.pack("<I", len(text)) + text
-        body = head + b" " * (start - len(head)) + b"".join(blobs)
-        # level 1: on smoke1 4.46 MB in 0.15 s, where level 6 took 0.32 s for 4.37 MB
-        return gzip.compress(body, compresslevel=1, mtime=0)
+        head += b" " * (start - len(head))
+        crc, size = zlib.crc32(head), len(head)
+        for name in ARRAYS:
+            crc, size = zlib.crc32(packed[name][1], crc), size + len(packed[name][1])
+        deflated = [_deflate(head)] + [packed[name][2] for name in ARRAYS]
+        end = zlib.compressobj(1, zlib.DEFLATED, -15).flush()  # the final (empty) block
+        return _GZIP_HEADER + b"".join(deflated) + end + struct.pack("<II", crc, size & 0xFFFFFFFF)
 
     @classmethod
     def decode(cls, data: bytes) -> RadianceField:
@@ -167,6 +162,34 @@ class RadianceField:
         for k in ("format", "version"):
             header.pop(k)
         return cls(meta=header, **out)
+
+
+#: The arrays of a field file, in file order.
+ARRAYS = ("sigma_t", "tau_light", "radiance_ms", "majorant")
+#: A gzip member's header: deflate, no name, mtime 0, fastest level, unknown OS.
+_GZIP_HEADER = b"\x1f\x8b\x08\x00\x00\x00\x00\x00\x04\xff"
+
+
+def _pack(name: str, a: np.ndarray) -> tuple[dict, bytes, bytes]:
+    """One array of a field file: (header entry without its offset, float16 bytes padded to 16,
+    the same deflated)."""
+    a = np.asarray(a, np.float32)
+    peak = a.reshape(-1, a.shape[-1]).max(axis=0) if name == "radiance_ms" else a.max(initial=0.0)
+    scale = np.where(np.asarray(peak) > 0, peak, 1.0)
+    raw = np.ascontiguousarray(a / scale, "<f2").tobytes()
+    raw += b"\0" * (-len(raw) % 16)
+    entry = {"dtype": "float16", "shape": list(a.shape), "scale": np.asarray(scale, float).tolist()}
+    if name == "majorant":
+        entry["block"] = BLOCK
+    return entry, raw, _deflate(raw)
+
+
+def _deflate(data: bytes) -> bytes:
+    """Raw deflate blocks of ``data`` at level 1 (on smoke1 a 4.46 MB file in 0.15 s, where level 6
+    took 0.32 s for 4.37 MB), ended by a sync flush: such blocks, each from a fresh compressor,
+    concatenate into one deflate stream."""
+    c = zlib.compressobj(1, zlib.DEFLATED, -15)
+    return c.compress(data) + c.flush(zlib.Z_SYNC_FLUSH)
 
 
 def _shifted(table: dict, start: int) -> dict:
@@ -298,7 +321,6 @@ def bake_field(
     nodes = {"positions": graph.positions, "search_radius": graph.search_radius, "G": node_G}
     binned = {"start": start, "entries": entries, "grid": grid}
     looked = chunks(builder, "field_lookup", {"points": points, **nodes, **binned})
-    G = _scatter(near, placed(looked, len(points), 3), (nz, ny, nx, 3))
     k = MS_COARSEN  # coarser still where the points to gather would be over MS_MAX_POINTS
     while True:
         ms_shape = tuple(-(-n // k) for n in shape)
@@ -307,13 +329,21 @@ def bake_field(
             break
         k += 1
     q = _to_world(u2w, unit_points(ms_shape)[ms_near])
+    G = _scatter(near, placed(looked, len(points), 3), (nz, ny, nx, 3))
     inputs = {"points": q.astype(np.float32), "G": G, "step": np.array([MS_STEP * voxel])}
     gathered = chunks(builder, "field_ms", inputs)
     t_ms = time.perf_counter() - t0
 
+    # While the gather's chunks run: single scattering placed, and the arrays that do not depend
+    # on the gather packed (most of the file's bytes; precompute.py encodes it at the end)
     t0 = time.perf_counter()
     tau_light = _scatter(near, placed(marched, len(points), 1)[:, 0], (nz, ny, nx))
     t_tau = time.perf_counter() - t0
+    majorant = block_majorant(fp.sigma_t)
+    packed = {
+        name: _pack(name, a)
+        for name, a in (("sigma_t", fp.sigma_t), ("tau_light", tau_light), ("majorant", majorant))
+    }
     t0 = time.perf_counter()
     radiance_ms = _scatter(ms_near, placed(gathered, len(q), 3), (*ms_shape[::-1], 3))
     t_ms += time.perf_counter() - t0
@@ -329,7 +359,7 @@ def bake_field(
         "albedo": np.broadcast_to(np.asarray(albedo, float), (3,)).tolist(),
         "step": 0.5 * voxel,
     }
-    field = RadianceField(fp.sigma_t, tau_light, radiance_ms, block_majorant(fp.sigma_t), meta)
+    field = RadianceField(fp.sigma_t, tau_light, radiance_ms, majorant, meta, packed)
     stats = {
         "field_s": round(time.perf_counter() - t_start, 3),
         "field_tau_s": round(t_tau, 3),

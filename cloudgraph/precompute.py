@@ -46,7 +46,9 @@ class RadianceCache:
         radiance: (N, 3) float32 node radiance L' (Algorithm 1), phase function included.
         radiance_gather: (N, 3) the same with one scattering event fewer (max_depth - 1), for
             estimators that scatter once more before looking up (the same when unbounded).
-        field: the baked :class:`~cloudgraph.field.RadianceField` (the ``field`` estimator's).
+        field: the baked :class:`~cloudgraph.field.RadianceField` (the ``field`` estimator's),
+            decoded from ``field_data`` (the field file's bytes) when first used: a precompute job
+            never uses it.
         keys: volume_id, graph_key, radiance_key.
         stats: graph, radiance and field stats, stage times, bytes.
         graph: the graph, read from the store only when first used: a ``field`` render of a
@@ -57,12 +59,19 @@ class RadianceCache:
 
     radiance: np.ndarray
     radiance_gather: np.ndarray
-    field: RadianceField
+    field_data: bytes
     keys: dict
     stats: dict
     store: CacheStore
     _graph: Graph | None = None
     _nodes: tuple[np.ndarray, np.ndarray] | None = None
+    _field: RadianceField | None = None
+
+    @property
+    def field(self) -> RadianceField:
+        if self._field is None:
+            self._field = RadianceField.decode(self.field_data)
+        return self._field
 
     @property
     def graph(self) -> Graph:
@@ -220,7 +229,7 @@ def precompute(
     if found is None:
         store.save_radiance(rkey, radiance_file, rstats)
     if found_field is not None:
-        field, fstats = RadianceField.decode(found_field), {}
+        field_data, fstats = found_field, {}
     else:
         progress("field", 0.95)
         field, fstats = bake_field(
@@ -235,9 +244,8 @@ def precompute(
             marched,
             next(iter(bins)),
         )
-        data = field.encode()
-        store.save_field(rkey, data)
-        field = RadianceField.decode(data)  # render what is stored, fresh or loaded alike
+        field_data = field.encode()  # render what is stored, fresh or loaded alike
+        store.save_field(rkey, field_data)
     progress("done", 1.0)
     stats = {
         **rstats,
@@ -256,7 +264,7 @@ def precompute(
         "radius": params.radius,
         "quality": quality,
     }
-    return RadianceCache(radiance, radiance_gather, field, keys, stats, store, graph)
+    return RadianceCache(radiance, radiance_gather, field_data, keys, stats, store, graph)
 
 
 def _size(path) -> int:

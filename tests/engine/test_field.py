@@ -6,6 +6,7 @@ relighting without a new graph, and the documented binary layout.
 import gzip
 import json
 import struct
+import zlib
 
 import numpy as np
 import pytest
@@ -193,6 +194,29 @@ def test_the_field_file_has_the_documented_layout(sphere, tmp_path):
     # and what the store keeps decodes to the same field
     stored = RadianceField.decode(CacheStore(tmp_path).save_field("k", cache.field.encode()).read_bytes())
     np.testing.assert_array_equal(stored.tau_light, cache.field.tau_light)
+
+
+def test_arrays_packed_ahead_make_the_same_file():
+    """A bake packs the arrays it has while its last chunks run (RadianceField.packed): the file
+    is the same bytes as one packed at the end, one standard gzip member that decodes to the
+    arrays."""
+    from cloudgraph.field import _pack
+
+    rng = np.random.default_rng(3)
+    arrays = {
+        "sigma_t": rng.random((9, 8, 7), np.float32) * 4,
+        "tau_light": rng.random((9, 8, 7), np.float32) * 20,
+        "radiance_ms": rng.random((5, 4, 4, 3), np.float32),
+        "majorant": rng.random((2, 1, 1), np.float32) * 4,
+    }
+    meta = {"step": 0.5, "albedo": [1.0, 1.0, 1.0]}
+    data = RadianceField(**arrays, meta=meta).encode()
+    early = {name: _pack(name, arrays[name]) for name in ("sigma_t", "tau_light", "majorant")}
+    assert RadianceField(**arrays, meta=meta, packed=early).encode() == data
+    assert zlib.decompress(data, wbits=31)[:8] == MAGIC  # whole member: CRC and length checked
+    decoded = RadianceField.decode(data)
+    for name, a in arrays.items():
+        np.testing.assert_allclose(getattr(decoded, name), a, rtol=1e-3, atol=1e-3 * a.max())
 
 
 def test_points_no_node_reaches_take_their_nearest_nodes_value():
