@@ -151,8 +151,9 @@ class SharedChunks:
     Args:
         redis: the queue's Redis.
         run: a name unique to this precompute attempt.
-        spec: ``scene`` (a scene dict), ``quality`` and, where known, ``params`` (the build
-            parameters, else added at the first stage): what a helper needs to make the builder.
+        spec: ``scene`` (a scene dict), ``quality``, ``graph`` (whether a graph is built) and,
+            where known, ``params`` (the build parameters, else added at the first stage): what a
+            helper needs to make the builder.
             Helpers are asked for once the spec is whole.
         folder: the run folder, on a volume every worker shares.
         ask_helpers: called once, to enqueue helper jobs; returns how many it asked for.
@@ -286,10 +287,14 @@ def help_run(redis: Redis, run: str, make_builder, lease_s: float = LEASE_S) -> 
     """A helper's loop: takes the run's tasks until the run ends; returns the chunks it ran.
 
     ``make_builder(spec)`` makes the :class:`~cloudgraph.graph.GraphBuilder` of a run's spec
-    (``scene``, ``quality``, ``params``: the coordinator's build parameters).
+    (``scene``, ``quality``, ``params``: the coordinator's build parameters; ``graph``: whether
+    the run builds a graph).
     """
     r, holder = _Run(redis, run, lease_s), holder_name()
-    builder, done, busy, t_start = None, 0, 0.0, time.perf_counter()
+    done, busy, t_start = 0, 0.0, time.perf_counter()
+    raw = redis.get(r.key("spec"))
+    # The builder is made before the first task: while the coordinator puts out its first stage
+    builder = None if raw is None else make_builder(json.loads(raw))
     while (raw := redis.get(r.key("spec"))) is not None:
         task = r.claim(holder)
         if task is None:
@@ -303,7 +308,6 @@ def help_run(redis: Redis, run: str, make_builder, lease_s: float = LEASE_S) -> 
         folder = Path(spec["dir"])
         t0 = time.perf_counter()
         with r.leased(task, holder):
-            builder = builder or make_builder(spec)
             result = builder.chunk(stage["stage"], i, _inputs(folder, gen, stage["inputs"]))
             try:
                 _write(folder / f"{gen}-{i}.npz", np.savez, **{f"a{k}": a for k, a in enumerate(result)})

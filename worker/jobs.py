@@ -56,7 +56,8 @@ def _precompute(scene, volume, quality: str, progress):
 
     s, job = state(), get_current_job()
     params = build_params(volume, scene.medium.density_scale, quality)
-    rkey = cache_keys(scene, volume, params)["radiance_key"]
+    keys = cache_keys(scene, volume, params)
+    rkey = keys["radiance_key"]
     if job is None or (s.caches.radiance_path(rkey).is_file() and s.caches.field_path(rkey).is_file()):
         shared = nullcontext(local_chunks)  # outside a job, or nothing to compute: here
     else:  # helpers are asked for at once, so that they load the volume while this worker does
@@ -64,7 +65,12 @@ def _precompute(scene, volume, quality: str, progress):
         shared = SharedChunks(
             job.connection,
             run,
-            {"scene": scene.model_dump(mode="json"), "quality": quality, "params": params.to_dict()},
+            {
+                "scene": scene.model_dump(mode="json"),
+                "quality": quality,
+                "params": params.to_dict(),
+                "graph": not s.caches.graph_path(keys["graph_key"]).is_file(),  # to be built
+            },
             s.caches.root / "runs" / run,
             partial(_ask_helpers, job.connection, run),
         )
@@ -93,11 +99,15 @@ def _ask_helpers(connection, run: str) -> int:
 
 
 def _builder(spec: dict):
-    """The graph builder of a shared run's spec (worker/chunks.py)."""
+    """The graph builder of a shared run's spec (worker/chunks.py), with its node cells where the
+    run builds a graph: a helper makes it while the coordinator puts out the first stage."""
     from cloudgraph.graph import BuildParams, GraphBuilder
 
     sc = parse_scene(spec["scene"])
-    return GraphBuilder(state().volume(sc), sc.medium.density_scale, BuildParams(**spec["params"]))
+    builder = GraphBuilder(state().volume(sc), sc.medium.density_scale, BuildParams(**spec["params"]))
+    if spec.get("graph"):
+        builder.cells  # noqa: B018 (made now, not in the first chunk)
+    return builder
 
 
 def chunk_job(run: str) -> dict:
