@@ -293,6 +293,9 @@ CHUNK_FLIGHTS = 1 << 18
 #: A round of reinforcement is cut into at least this many chunks (of 2^12 flights or more), so
 #: that the workers sharing a build share its last, small rounds too
 ROUND_CHUNKS = 8
+#: The search ranges are found in this many chunks: on a shared build, by other workers while the
+#: edge counts are put in order (0.8 s of k-nearest-node queries on blender)
+SEARCH_CHUNKS = 2
 #: Chunks run ahead on threads while the last is merged (local_chunks)
 LOCAL_THREADS = 2
 
@@ -308,10 +311,12 @@ class GraphBuilder:
     index * CHUNK_SEEDS on; ``flights``, reinforcement flights of one round in chunks of at most
     CHUNK_FLIGHTS (:func:`_flight_chunk`), with inputs per node short of samples (``cells``
     keys, ``ends`` running total of flights, ``kept`` collisions and how many ``members``) and
-    the ``round``: a few bytes per node, not per flight; and the later stages: the direct
-    lighting of the nodes (``lighting``); the nodes binned for the field's lookups (``bins``, one
-    chunk, :func:`~cloudgraph.integrators.graph.node_bins`); and the field bake's light march,
-    node lookups and gathers (``field_tau``, ``field_lookup``, ``field_ms``).
+    the ``round``: a few bytes per node, not per flight; ``search``, the nodes' search ranges
+    from their ``positions`` (float64, in key order), in SEARCH_CHUNKS chunks; and the later
+    stages: the direct lighting of the nodes (``lighting``); the nodes binned for the field's
+    lookups (``bins``, one chunk, :func:`~cloudgraph.integrators.graph.node_bins`); and the
+    field bake's light march, node lookups and gathers (``field_tau``, ``field_lookup``,
+    ``field_ms``).
     """
 
     #: Stages put out long before their results are needed (the field's light march, at the start
@@ -347,6 +352,8 @@ class GraphBuilder:
             return -(-int(inputs["ends"][-1]) // _flight_chunk(inputs))
         if stage == "bins":
             return 1
+        if stage == "search":
+            return -(-len(inputs["positions"]) // _search_chunk(len(inputs["positions"])))
         if stage == "lighting":
             from .lighting import LIGHTING_CHUNK
 
@@ -364,6 +371,8 @@ class GraphBuilder:
             return self._seeds(index * CHUNK_SEEDS)
         if stage == "flights":
             return self._flights(index, inputs)
+        if stage == "search":
+            return self._search(index, inputs)
         if stage == "lighting":
             from .lighting import lighting_chunk
 
@@ -413,6 +422,16 @@ class GraphBuilder:
     def _density_cdf(self) -> np.ndarray:
         return np.cumsum(self.volume.density.ravel(), dtype=np.float64)
 
+    def _search(self, index: int, inputs: dict) -> tuple[np.ndarray, np.ndarray]:
+        # Search ranges (Eq. 4.21): R_a = max(d_k(a), r), d_k from the k nearest other nodes
+        nodes, p = np.asarray(inputs["positions"]), self.params
+        size = _search_chunk(len(nodes))
+        q = nodes[index * size : (index + 1) * size]
+        k = min(p.search_k + 1, len(nodes))
+        dk, _ = cKDTree(nodes).query(q, k=k, workers=cpu_threads())
+        kth = dk[:, -1] if k > 1 else np.full(len(q), p.radius)
+        return np.array([index * size]), np.maximum(kth, p.radius).astype(np.float32)[:, None]
+
     def _flights(self, index: int, inputs: dict) -> tuple[np.ndarray, ...]:
         # Flights a .. a + size - 1 of the round: flight f belongs to the first node
         # whose running total of flights (``ends``) exceeds f, and starts at one of its kept
@@ -434,6 +453,12 @@ class GraphBuilder:
         priority = uniform_hash(p.seed, 2 + rnd, a + np.flatnonzero(collided))
         src = np.asarray(inputs["cells"])[node]
         return reduce_chunk(hit_keys, hits, priority, src, dst, self.origin, p.radius)
+
+
+def _search_chunk(n_nodes: int) -> int:
+    """Nodes per chunk of the search ranges: SEARCH_CHUNKS chunks, each with a k-d tree of all the
+    nodes (a tenth of the time of its queries on blender)."""
+    return max(1, -(-n_nodes // SEARCH_CHUNKS))
 
 
 def _flight_chunk(inputs: dict) -> int:
@@ -538,13 +563,10 @@ def build_graph(
     positions = nodes.astype(np.float32)
     if nodes_found is not None:
         nodes_found(positions)
+    ranges = chunks(builder, "search", {"positions": nodes})  # other workers start on them
     out_samples = table.out[by_key]
-    counts = sp.csr_matrix(table.counts[by_key][:, by_key])
-    counts.sort_indices()
-    kq = min(params.search_k + 1, n)
-    dk, _ = cKDTree(nodes).query(nodes, k=kq, workers=cpu_threads())
-    kth = dk[:, -1] if kq > 1 else np.full(n, params.radius)
-    search = np.maximum(kth, params.radius).astype(np.float32)  # Eq. 4.21: R_a = max(d_k(a), r)
+    counts = table.counts_by_key()
+    search = placed(ranges, n, 1)[:, 0]
     t_group = time.perf_counter() - t0
 
     progress("graph", 1.0)

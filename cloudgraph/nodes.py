@@ -126,18 +126,27 @@ class NodeTable:
         self._edges: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # merged, not yet summed
         self._pending = 0
 
-    @property
-    def counts(self) -> sp.csr_matrix:
-        """(N, N) edge counts of everything merged so far."""
-        self._sum_edges()
-        return self._counts
+    def counts_by_key(self) -> sp.csr_matrix:
+        """(N, N) edge counts of everything merged so far, node i numbered by its place in key
+        order (:attr:`order`), indices sorted: the summed and the waiting edges renumbered and
+        summed in one conversion (0.45 s on blender, where summing and then permuting rows and
+        columns took 0.9 s)."""
+        n = len(self)
+        rank = np.empty(n, np.int64)
+        rank[self.order] = np.arange(n)
+        summed = self._counts.tocoo()
+        edges = zip((summed.row, summed.col, summed.data), *self._edges, strict=True)
+        rows, cols, values = (np.concatenate(a) for a in edges)
+        counts = sp.csr_matrix((values, (rank[rows], rank[cols])), shape=(n, n))
+        counts.sort_indices()
+        return counts
 
     def _sum_edges(self) -> None:
-        # Merged edges wait in a list and are summed when asked for, or when as many wait as
-        # are summed and at least 2^23 (memory stays within twice the edges, or 200 MB more):
-        # adding each chunk's to the sum would copy every edge at every merge, and a sum during
-        # a shared build is serial work that its helpers wait on (0.5 s on blender, which now
-        # sums once, when the graph is made).
+        # Merged edges wait in a list and are summed when as many wait as are summed and at least
+        # 2^23 (memory stays within twice the edges, or 200 MB more): adding each chunk's to the
+        # sum would copy every edge at every merge, and a sum during a shared build is serial
+        # work that its helpers wait on (0.5 s on blender, which now sums once, when the graph is
+        # made: counts_by_key).
         n = len(self)
         waiting = [np.concatenate(a) for a in zip(*self._edges, strict=True)] if self._edges else []
         self._counts.resize((n, n))
