@@ -27,6 +27,7 @@ light paths, and the graph is the same bytes however the chunks are cut or order
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from collections import deque
@@ -176,6 +177,33 @@ class Graph:
         inv = np.divide(1.0, self.out_samples, out=np.zeros(self.n_nodes), where=self.out_samples > 0)
         return sp.csr_matrix(sp.diags(inv) @ self.counts)
 
+    def to_arrays(self) -> dict:
+        """The graph as plain arrays (the inputs of a ``graph_file`` chunk, GraphBuilder)."""
+        c = self.counts
+        return {
+            "positions": self.positions,
+            "search_radius": self.search_radius,
+            "out_samples": self.out_samples,
+            "indptr": c.indptr,
+            "indices": c.indices,
+            "counts": c.data,
+            "stats": np.frombuffer(json.dumps(self.stats).encode(), np.uint8),
+        }
+
+    @classmethod
+    def from_arrays(cls, a: dict) -> Graph:
+        """The graph of :meth:`to_arrays`."""
+        n = len(a["positions"])
+        counts = sp.csr_matrix(tuple(np.asarray(a[k]) for k in ("counts", "indices", "indptr")), shape=(n, n))
+        stats = json.loads(np.asarray(a["stats"]).tobytes())
+        return cls(
+            np.asarray(a["positions"]),
+            np.asarray(a["search_radius"]),
+            np.asarray(a["out_samples"]),
+            counts,
+            stats,
+        )
+
     def escape_samples(self) -> np.ndarray:
         """(N,) outgoing samples that left the medium."""
         return self.out_samples - np.asarray(self.counts.sum(axis=1)).ravel()
@@ -313,16 +341,17 @@ class GraphBuilder:
     keys, ``ends`` running total of flights, ``kept`` collisions and how many ``members``) and
     the ``round``: a few bytes per node, not per flight; ``search``, the nodes' search ranges
     from their ``positions`` (float64, in key order), in SEARCH_CHUNKS chunks; and the later
-    stages: the direct lighting of the nodes (``lighting``); the nodes binned for the field's
-    lookups (``bins``, one chunk, :func:`~cloudgraph.integrators.graph.node_bins`); and the
-    field bake's light march, node lookups and gathers (``field_tau``, ``field_lookup``,
-    ``field_ms``).
+    stages: the direct lighting of the nodes (``lighting``); the graph file's bytes
+    (``graph_file``, one chunk, :func:`~cloudgraph.cache.graph_file` of
+    :meth:`Graph.to_arrays`); the nodes binned for the field's lookups (``bins``, one chunk,
+    :func:`~cloudgraph.integrators.graph.node_bins`); and the field bake's light march, node
+    lookups and gathers (``field_tau``, ``field_lookup``, ``field_ms``).
     """
 
     #: Stages put out long before their results are needed (the field's light march, at the start
-    #: of a precompute; the node bins, before the transport): workers that share a precompute run
-    #: them when no other stage has work.
-    late_stages = frozenset({"field_tau", "bins"})
+    #: of a precompute; the node bins and the graph file's bytes, before the transport): workers
+    #: that share a precompute run them when no other stage has work.
+    late_stages = frozenset({"field_tau", "bins", "graph_file"})
 
     def __init__(self, volume: Volume, density_scale: float, params: BuildParams):
         self.volume, self.params, self.density_scale = volume, params, density_scale
@@ -350,7 +379,7 @@ class GraphBuilder:
             return -(-self.params.coverage_seeds // CHUNK_SEEDS)
         if stage == "flights":
             return -(-int(inputs["ends"][-1]) // _flight_chunk(inputs))
-        if stage == "bins":
+        if stage in ("bins", "graph_file"):
             return 1
         if stage == "search":
             return -(-len(inputs["positions"]) // _search_chunk(len(inputs["positions"])))
@@ -381,6 +410,10 @@ class GraphBuilder:
             from .field import field_chunk
 
             return field_chunk(self, stage, index, inputs)
+        if stage == "graph_file":
+            from .cache import graph_file
+
+            return (np.frombuffer(graph_file(Graph.from_arrays(inputs)), np.uint8),)
         if stage == "bins":
             from .integrators.graph import node_bins
 

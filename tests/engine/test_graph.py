@@ -7,6 +7,8 @@ sparse solve for the transport. Volumes are small (16^3-32^3) so that the file r
 a minute and a half on two CPU cores.
 """
 
+import io
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -276,8 +278,15 @@ def test_a_fixed_seed_gives_identical_caches_in_separate_stores(variant, tmp_pat
 
 
 def test_the_graph_file_is_compact_and_exact_where_transport_needs_it(sphere, monkeypatch):
-    from cloudgraph.cache import pack_graph, pack_radiance, unpack_graph, unpack_radiance
-    from cloudgraph.graph import build_graph, build_params
+    from cloudgraph.cache import (
+        graph_file,
+        pack_graph,
+        pack_radiance,
+        stored_graph,
+        unpack_graph,
+        unpack_radiance,
+    )
+    from cloudgraph.graph import GraphBuilder, build_graph, build_params
     from cloudgraph.integrators.graph import GraphRenderer
 
     cache, volume, scene = sphere["cache"], sphere["volume"], sphere["scene"]
@@ -294,6 +303,15 @@ def test_the_graph_file_is_compact_and_exact_where_transport_needs_it(sphere, mo
     step = (built.positions.max(axis=0) - built.positions.min(axis=0)) / 65535
     assert np.all(np.abs(back.positions - built.positions) <= 0.5 * step * (1 + 1e-3))
     np.testing.assert_allclose(back.search_radius, built.search_radius, rtol=2.0**-11)
+    # what a precompute goes on with, made without packing, is what the file gives back
+    stored = stored_graph(built)
+    np.testing.assert_array_equal(stored.positions, back.positions)
+    np.testing.assert_array_equal(stored.search_radius, back.search_radius)
+    # and a graph_file chunk, run on the graph's arrays, makes the file's bytes
+    builder = GraphBuilder(volume, sphere["sigma"], build_params(volume, sphere["sigma"], "draft"))
+    (data,) = builder.chunk("graph_file", 0, built.to_arrays())
+    assert data.tobytes() == graph_file(built)
+    assert (unpack_graph(np.load(io.BytesIO(data.tobytes()))).counts != built.counts).nnz == 0
     # Radiance to 8 significant bits at any magnitude, and kept once where both arrays are one
     L = np.random.default_rng(1).lognormal(-8.0, 4.0, (1000, 3)).astype(np.float32)
     packed = pack_radiance(L, L)
