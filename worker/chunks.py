@@ -61,6 +61,19 @@ return t
 """
 
 
+# LREM the first of the tasks ARGV[3..] still in the list KEYS[1] and lease it to ARGV[1] for
+# ARGV[2] ms, in one step
+_CLAIM_OWN = """
+for i = 3, #ARGV do
+  if redis.call('LREM', KEYS[1], 1, ARGV[i]) == 1 then
+    redis.call('SET', KEYS[2] .. ARGV[i], ARGV[1], 'PX', ARGV[2])
+    return ARGV[i]
+  end
+end
+return nil
+"""
+
+
 # RPUSH ARGV[1] to the done list KEYS[2] while the run's spec KEYS[1] exists: a helper that ends a
 # chunk after its run ended leaves no key behind
 _DONE = """
@@ -83,6 +96,7 @@ class _Run:
     def __init__(self, redis: Redis, run: str, lease_s: float):
         self.redis, self.run, self.lease_ms = redis, run, int(lease_s * 1000)
         self._claim = redis.register_script(_CLAIM)
+        self._claim_own = redis.register_script(_CLAIM_OWN)
         self._done = redis.register_script(_DONE)
 
     def key(self, part: str) -> str:
@@ -92,6 +106,12 @@ class _Run:
         """A task for ``holder``: of the stages in order, then (``late``) of the late ones."""
         keys = [self.key("todo"), self.key("later"), self.key("lease:")]
         t = self._claim(keys=keys, args=[holder, self.lease_ms, int(late)])
+        return None if t is None else t.decode()
+
+    def claim_late(self, holder: str, tasks: list[str]) -> str | None:
+        """The first of ``tasks`` (of a late stage) still unclaimed, for ``holder``."""
+        keys = [self.key("later"), self.key("lease:")]
+        t = self._claim_own(keys=keys, args=[holder, self.lease_ms, *tasks]) if tasks else None
         return None if t is None else t.decode()
 
     def put(self, gen: int, n: int, late: bool) -> None:
@@ -245,8 +265,12 @@ class SharedChunks:
             if ready:
                 continue
             # A chunk of our own: of this stage or an earlier one still out; of a late stage only
-            # when its results are wanted (the helpers run them meanwhile)
-            task = r.claim(self.holder, late=self.stages[gen][0] in builder.late_stages)
+            # when its results are wanted (the helpers run them meanwhile), and then only its own:
+            # another late stage's chunk (the graph file's, 1 s on blender) would hold up this
+            # one's results while the helpers have nothing to do
+            task = r.claim(self.holder, late=False)
+            if task is None and self.stages[gen][0] in builder.late_stages:
+                task = r.claim_late(self.holder, [f"{gen}:{i}" for i in sorted(pending)])
             if task is not None:
                 g, i = (int(x) for x in task.split(":"))
                 stage, inputs = self.stages[g]
