@@ -63,7 +63,7 @@ return t
 
 # LREM the first of the tasks ARGV[3..] still in the list KEYS[1] and lease it to ARGV[1] for
 # ARGV[2] ms, in one step
-_CLAIM_OWN = """
+_CLAIM_LATE = """
 for i = 3, #ARGV do
   if redis.call('LREM', KEYS[1], 1, ARGV[i]) == 1 then
     redis.call('SET', KEYS[2] .. ARGV[i], ARGV[1], 'PX', ARGV[2])
@@ -96,7 +96,7 @@ class _Run:
     def __init__(self, redis: Redis, run: str, lease_s: float):
         self.redis, self.run, self.lease_ms = redis, run, int(lease_s * 1000)
         self._claim = redis.register_script(_CLAIM)
-        self._claim_own = redis.register_script(_CLAIM_OWN)
+        self._claim_late = redis.register_script(_CLAIM_LATE)
         self._done = redis.register_script(_DONE)
 
     def key(self, part: str) -> str:
@@ -111,7 +111,7 @@ class _Run:
     def claim_late(self, holder: str, tasks: list[str]) -> str | None:
         """The first of ``tasks`` (of a late stage) still unclaimed, for ``holder``."""
         keys = [self.key("later"), self.key("lease:")]
-        t = self._claim_own(keys=keys, args=[holder, self.lease_ms, *tasks]) if tasks else None
+        t = self._claim_late(keys=keys, args=[holder, self.lease_ms, *tasks]) if tasks else None
         return None if t is None else t.decode()
 
     def put(self, gen: int, n: int, late: bool) -> None:

@@ -144,19 +144,23 @@ def test_a_chunk_whose_worker_died_is_redone_and_the_graph_is_the_same(tmp_path,
 
 def test_late_tasks_wait_until_no_other_task_is_left(redis_only):
     """Tasks of a late stage (the field's light march, GraphBuilder.late_stages) fill the gaps:
-    a helper takes them only when no other task is out, a coordinator only when it asks."""
+    a helper takes them only when no other task is out, a coordinator only when it asks, and then
+    only those of the stage it asks for."""
     from cloudgraph.graph import GraphBuilder
 
-    assert {"field_tau", "bins"} <= GraphBuilder.late_stages and "trace" not in GraphBuilder.late_stages
+    assert {"field_tau", "bins", "graph_file"} <= GraphBuilder.late_stages
+    assert "trace" not in GraphBuilder.late_stages
     run = _Run(redis_only, "late", lease_s=1.0)
     run.put(1, 2, late=True)  # the light march, put out first
     run.put(2, 1, late=False)
     run.put(3, 2, late=True)  # the node bins, wanted before the march's results
     assert run.claim("coordinator", late=False) == "2:0"
     assert run.claim("coordinator", late=False) is None
-    claims = [run.claim("helper") for _ in range(5)]
-    assert claims == ["3:0", "3:1", "1:0", "1:1", None]
-    assert redis_only.get(run.key("lease:1:1")) == b"helper"
+    assert run.claim_late("coordinator", ["1:1", "1:0"]) == "1:1"  # not the head of the list
+    assert redis_only.get(run.key("lease:1:1")) == b"coordinator"
+    claims = [run.claim("helper") for _ in range(4)]
+    assert claims == ["3:0", "3:1", "1:0", None]
+    assert run.claim_late("coordinator", ["1:0", "1:1"]) is None  # all taken
 
 
 def test_a_helper_that_ends_a_chunk_after_its_run_ended_leaves_no_key(redis_only):
