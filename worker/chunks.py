@@ -159,6 +159,15 @@ def _write(path: Path, save, *args, **kwargs) -> None:
     os.replace(tmp, path)
 
 
+def _linked(source: Path, path: Path) -> bool:
+    """Whether ``path`` could be made a hard link to ``source`` (not on every file system)."""
+    try:
+        os.link(source, path)
+    except OSError:
+        return False
+    return True
+
+
 def _inputs(folder: Path, gen: int, names: list[str]) -> dict:
     return {name: np.load(folder / f"{gen}-{name}.npy", mmap_mode="r") for name in names}
 
@@ -187,6 +196,7 @@ class SharedChunks:
         self.holder = holder_name()
         self.gen, self.helpers, self.redone, self.here = 0, None, 0, {}
         self.stages, self.pending, self.ready = {}, {}, {}  # per stage out: (stage, inputs), chunks
+        self.written = {}  # id of an input array -> (the array, its file in the run folder)
         self._stop = threading.Event()
         self._beat = threading.Thread(target=self._renew_spec, daemon=True)
 
@@ -241,7 +251,13 @@ class SharedChunks:
         n = builder.n_chunks(stage, inputs)
         names = sorted(inputs or {})
         for name in names:
-            _write(self.folder / f"{gen}-{name}.npy", np.save, np.asarray(inputs[name]))
+            # An array already written for an earlier stage (the field's points, the node
+            # positions) is linked, not written again
+            a, path = inputs[name], self.folder / f"{gen}-{name}.npy"
+            earlier = self.written.get(id(a))
+            if earlier is None or earlier[0] is not a or not _linked(earlier[1], path):
+                _write(path, np.save, np.asarray(a))
+                self.written[id(a)] = (a, path)
         self.stages[gen] = (stage, inputs)
         self.pending[gen], self.ready[gen] = set(range(n)), []
         r.redis.set(r.key(f"stage:{gen}"), json.dumps({"stage": stage, "inputs": names}))
