@@ -352,6 +352,9 @@ class GraphBuilder:
     #: of a precompute; the node bins and the graph file's bytes, before the transport): workers
     #: that share a precompute run them when no other stage has work.
     late_stages = frozenset({"field_tau", "bins", "graph_file"})
+    #: Late stages whose results are wanted only at the end of a precompute (the graph file is
+    #: written last): they wait behind every other late stage, whenever that was put out.
+    last_stages = frozenset({"graph_file"})
 
     def __init__(self, volume: Volume, density_scale: float, params: BuildParams):
         self.volume, self.params, self.density_scale = volume, params, density_scale

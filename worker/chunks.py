@@ -21,8 +21,9 @@ Keys, under ``cloudgraph:run:<run>:``:
 |               | ``<dir>/<gen>-<name>.npy``); several can be out at once                   |
 | todo          | tasks ``<gen>:<chunk>`` not yet claimed, oldest stage first               |
 | later         | the same, of stages needed late (GraphBuilder.late_stages), newest stage  |
-|               | first (it is wanted soonest): claimed when todo is empty, so that they    |
-|               | fill the gaps the other stages leave                                      |
+|               | first (it is wanted soonest) but those wanted only at the end last        |
+|               | (GraphBuilder.last_stages): claimed when todo is empty, so that they fill |
+|               | the gaps the other stages leave                                           |
 | lease:<task>  | the holder of a claimed task; expires LEASE_S after its last renewal      |
 | done:<gen>    | tasks of that stage finished by helpers (``<dir>/<gen>-<chunk>.npz``)     |
 """
@@ -114,12 +115,15 @@ class _Run:
         t = self._claim_late(keys=keys, args=[holder, self.lease_ms, *tasks]) if tasks else None
         return None if t is None else t.decode()
 
-    def put(self, gen: int, n: int, late: bool) -> None:
+    def put(self, gen: int, n: int, late: bool, last: bool = False) -> None:
         """Puts the n tasks of stage ``gen`` out: at the end of todo, or (``late``) at the head of
         later, in order: of the late stages, the last put out is the first wanted (the field's
-        node bins before its light march)."""
+        node bins before its light march); or (``last``) at the end of later: wanted only when
+        the precompute ends (the graph file's bytes)."""
         tasks = [f"{gen}:{i}" for i in range(n)]
-        if late:
+        if last:
+            self.redis.rpush(self.key("later"), *tasks)
+        elif late:
             self.redis.lpush(self.key("later"), *reversed(tasks))
         else:
             self.redis.rpush(self.key("todo"), *tasks)
@@ -262,7 +266,7 @@ class SharedChunks:
         self.pending[gen], self.ready[gen] = set(range(n)), []
         r.redis.set(r.key(f"stage:{gen}"), json.dumps({"stage": stage, "inputs": names}))
         if n:
-            r.put(gen, n, stage in builder.late_stages)
+            r.put(gen, n, stage in builder.late_stages, stage in builder.last_stages)
         if self.helpers is None:  # the first stage: helpers are asked for once the spec is whole
             self.spec["params"] = builder.params.to_dict()
             self._set_spec()

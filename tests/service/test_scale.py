@@ -151,15 +151,17 @@ def test_late_tasks_wait_until_no_other_task_is_left(redis_only):
     assert {"field_tau", "bins", "graph_file"} <= GraphBuilder.late_stages
     assert "trace" not in GraphBuilder.late_stages
     run = _Run(redis_only, "late", lease_s=1.0)
+    assert GraphBuilder.last_stages == {"graph_file"}
     run.put(1, 2, late=True)  # the light march, put out first
     run.put(2, 1, late=False)
+    run.put(4, 1, late=True, last=True)  # the graph file's bytes, wanted at the very end
     run.put(3, 2, late=True)  # the node bins, wanted before the march's results
     assert run.claim("coordinator", late=False) == "2:0"
     assert run.claim("coordinator", late=False) is None
     assert run.claim_late("coordinator", ["1:1", "1:0"]) == "1:1"  # not the head of the list
     assert redis_only.get(run.key("lease:1:1")) == b"coordinator"
-    claims = [run.claim("helper") for _ in range(4)]
-    assert claims == ["3:0", "3:1", "1:0", None]
+    claims = [run.claim("helper") for _ in range(5)]
+    assert claims == ["3:0", "3:1", "1:0", "4:0", None]
     assert run.claim_late("coordinator", ["1:0", "1:1"]) is None  # all taken
 
 
