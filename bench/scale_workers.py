@@ -3,6 +3,9 @@ built through the service by 1 and by N workers of one Dr.Jit thread each, each 
 service (kernels compiled in every run alike), and whether the cache files are the same bytes.
 Runs alternate (1, N, 1, N, ...) and the speed-up is the ratio of the medians: a shared
 machine's pace drifts over minutes, which a single pair of runs reads as a change of speed-up.
+Before each pair the machine's own capacity is measured: how much faster N copies of a CPU-bound
+probe finish together than one after another (2.0 on two idle cores; this 2-core VM gave
+1.5–2.0 over an hour), the ceiling of any speed-up measured beside it.
 
     .venv/bin/python bench/scale_workers.py [--volume ../shared/data/smoke1.vdb] [--workers 2]
         [--repeats 3]
@@ -13,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -56,6 +60,27 @@ def precompute_through(workers: int, volume: Path, quality: str, data: Path) -> 
         svc.stop()
 
 
+#: A CPU-bound stand-in for a worker's work (numpy sorts and Python), about a second alone
+PROBE = """import time, numpy as np
+t, r = time.perf_counter(), np.random.default_rng(0)
+for _ in range(6):
+    np.sort(r.random(1 << 21)); sum(i * i for i in range(300000))
+print(time.perf_counter() - t)"""
+
+
+def machine_capacity(n: int) -> float:
+    """How many times faster n copies of the probe finish together than one after another: the
+    most that n workers could gain on this machine at this moment (n on idle cores of their own;
+    less where its cores share the host's with others)."""
+
+    def start():
+        return subprocess.Popen([sys.executable, "-c", PROBE], stdout=subprocess.PIPE, text=True)
+
+    alone = float(start().communicate()[0])
+    together = max(float(p.communicate()[0]) for p in [start() for _ in range(n)])
+    return n * alone / together
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--volume", default=str(ROOT.parent / "shared" / "data" / "smoke1.vdb"))
@@ -64,8 +89,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args()
     volume = Path(args.volume)
-    one_runs, n_runs, same = [], [], True
+    one_runs, n_runs, capacity, same = [], [], [], True
     for _ in range(args.repeats):
+        capacity.append(round(machine_capacity(args.workers), 2))
         one_s, one, one_times = precompute_through(1, volume, args.quality, Path("/tmp/cloudgraph-scale-1"))
         n_s, many, n_times = precompute_through(
             args.workers, volume, args.quality, Path("/tmp/cloudgraph-scale-n")
@@ -83,6 +109,8 @@ def main() -> None:
         "one_worker_runs_s": one_runs,
         f"{args.workers}_workers_runs_s": n_runs,
         "pair_speedups": [round(a / b, 2) for a, b in zip(one_runs, n_runs, strict=True)],
+        "machine_capacity": float(np.median(capacity)),
+        "machine_capacity_runs": capacity,
         "same_bytes": same,
         "one_worker_stages": one_times,
         f"{args.workers}_workers_stages": n_times,
