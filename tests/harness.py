@@ -118,7 +118,17 @@ class Service:
         wait_until(lambda: get_ok(f"{self.url}/healthz"), 30, "the API did not start")
 
     def wait_ready(self, timeout: float = 60) -> None:
-        wait_until(lambda: get_ok(f"{self.url}/readyz"), timeout, "no worker became ready")
+        """Until every worker started is alive: a precompute asks for helpers from the workers
+        alive when it starts."""
+
+        def all_alive():
+            try:
+                r = httpx.get(f"{self.url}/readyz", timeout=2)
+            except httpx.HTTPError:
+                return False
+            return r.status_code == 200 and r.json()["workers"] >= len(self.workers)
+
+        wait_until(all_alive, timeout, f"not all {len(self.workers)} workers became ready")
 
     def stop(self) -> None:
         for p in [self.api, *self.workers, self.redis]:
