@@ -229,7 +229,7 @@ def pack_graph(graph: Graph) -> dict:
     c = graph.counts.tocsr()
     c.sort_indices()
     lo, step, positions = _box_quantized(graph.positions)
-    unit = _search_unit(graph.search_radius)
+    unit, search = _search_quantized(graph.search_radius)
     lengths = np.diff(c.indptr)
     ends = c.indices.astype(np.int64)
     before = np.concatenate([[0], ends[:-1]])
@@ -239,7 +239,7 @@ def pack_graph(graph: Graph) -> dict:
         "box_step": step,
         "positions": _planes(positions.T.ravel()),
         "search_unit": unit,
-        "search_radius": _planes((graph.search_radius / unit).astype(np.float16)),
+        "search_radius": _planes(search),
         "out_samples": _planes(_compact(graph.out_samples)),
         "row_lengths": _planes(_compact(lengths)),
         "edge_gaps": _planes(_compact(_zigzag(ends - before))),
@@ -271,8 +271,10 @@ def _nodes(z: dict) -> tuple[np.ndarray, np.ndarray]:
     return positions, _unplanes(z["search_radius"], "f").astype(np.float32) * np.float32(z["search_unit"])
 
 
-def _search_unit(search_radius: np.ndarray) -> np.float32:
-    return np.float32(search_radius.min() if len(search_radius) else 1.0)
+def _search_quantized(search_radius: np.ndarray) -> tuple[np.float32, np.ndarray]:
+    """(unit, float16 multiples of it) of (N,) search ranges (pack_graph)."""
+    unit = np.float32(search_radius.min() if len(search_radius) else 1.0)
+    return unit, (search_radius / unit).astype(np.float16)
 
 
 def stored_graph(graph: Graph) -> Graph:
@@ -281,8 +283,8 @@ def stored_graph(graph: Graph) -> Graph:
     are."""
     from .graph import Graph
 
-    unit = _search_unit(graph.search_radius)
-    search_radius = (graph.search_radius / unit).astype(np.float16).astype(np.float32) * unit
+    unit, search = _search_quantized(graph.search_radius)
+    search_radius = search.astype(np.float32) * unit
     return Graph(
         stored_positions(graph.positions), search_radius, graph.out_samples, graph.counts, graph.stats
     )
