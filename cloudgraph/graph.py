@@ -178,15 +178,17 @@ class Graph:
         return sp.csr_matrix(sp.diags(inv) @ self.counts)
 
     def to_arrays(self) -> dict:
-        """The graph as plain arrays (the inputs of a ``graph_file`` chunk, GraphBuilder)."""
+        """The graph as plain arrays (the inputs of a ``graph_file`` chunk, GraphBuilder); the
+        counts in the smallest unsigned type that holds them (the file packs them anyway)."""
         c = self.counts
+        top = int(c.data.max()) if c.nnz else 0
         return {
             "positions": self.positions,
             "search_radius": self.search_radius,
             "out_samples": self.out_samples,
             "indptr": c.indptr,
             "indices": c.indices,
-            "counts": c.data,
+            "counts": c.data.astype(np.min_scalar_type(top)),
             "stats": np.frombuffer(json.dumps(self.stats).encode(), np.uint8),
         }
 
@@ -194,7 +196,8 @@ class Graph:
     def from_arrays(cls, a: dict) -> Graph:
         """The graph of :meth:`to_arrays`."""
         n = len(a["positions"])
-        counts = sp.csr_matrix(tuple(np.asarray(a[k]) for k in ("counts", "indices", "indptr")), shape=(n, n))
+        data = np.asarray(a["counts"]).astype(np.int64)
+        counts = sp.csr_matrix((data, np.asarray(a["indices"]), np.asarray(a["indptr"])), shape=(n, n))
         stats = json.loads(np.asarray(a["stats"]).tobytes())
         return cls(
             np.asarray(a["positions"]),
