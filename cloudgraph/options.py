@@ -11,4 +11,4 @@ INTEGRATORS = ("volpath", "graph")
 ESTIMATORS = ("gather", "free_flight", "march", "field")
 
 #: Graph quality presets (see ``cloudgraph.graph.PRESETS``).
-QUALITIES = ("draft", "default", "high")
+QUALITIES = ("draft", "compact", "default", "high")

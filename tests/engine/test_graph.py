@@ -177,6 +177,31 @@ def test_nodes_grow_with_the_free_path_where_the_medium_is_thin(variant, tmp_pat
     assert abs(ratios[1] - 1.0) < 0.03 and abs(ratios[1] - ratios[0]) < 0.02
 
 
+def test_compact_keeps_a_quarter_of_the_nodes_where_the_medium_is_dense():
+    # Issue 11's bar is a quarter of the nodes: in a cloud whose free path is a quarter voxel both
+    # presets sit at their lower clamp (0.6 and 1 voxel), so compact's cells (cubes of side
+    # 2r / sqrt(3)) hold (1 / 0.6)^3 = 4.6 times the volume. A lattice of points finer than
+    # either fills every cell that the box meets.
+    from cloudgraph.graph import build_params
+    from cloudgraph.nodes import NodeCells
+
+    volume = Volume(np.ones((40, 40, 40), np.float32), (0, 0, 0), np.eye(4))
+    lo, hi = volume.world_bbox()
+    axis = np.linspace(lo[0], hi[0] - 1e-6, 161)
+    points = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
+    nodes = {}
+    for quality, radius in (("default", 0.6), ("compact", 1.0)):
+        params = build_params(volume, 4.0, quality)
+        assert params.radius == pytest.approx(radius)
+        cells = NodeCells(volume, 4.0, params, lo - params.radius)
+        assert cells.side == pytest.approx(2 * radius / np.sqrt(3))
+        per_axis = int((hi[0] - 1e-6 - cells.origin[0]) // cells.side) + 1  # the first cell holds lo
+        nodes[quality] = len(np.unique(cells.keys(points)))
+        assert nodes[quality] == per_axis**3
+    # 36^3 / 59^3 = 0.227 with the cells cut by the box's faces
+    assert nodes["compact"] / nodes["default"] < 0.25
+
+
 # ------------------------------------------------------------------ 3. error against node radius
 
 
