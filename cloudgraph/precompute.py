@@ -186,9 +186,6 @@ def precompute(
                 started=march,
             )
             graph = stored_graph(built)  # go on with what is stored: fresh and loaded alike
-            # The file's bytes (packed and compressed: 0.6 s on blender) are a late stage, for a
-            # worker that shares this precompute to make while this one goes on
-            filed = chunks(builder, "graph_file", built.to_arrays())
     if found is None and lit is None:
         light(graph.positions)
     # The field's node bins need the graph only: put out now, for a worker that shares this
@@ -196,6 +193,10 @@ def precompute(
     bins = None
     if found_field is None:
         bins = chunks(builder, "bins", {"positions": graph.positions, "search_radius": graph.search_radius})
+    if not graph_reused:
+        # The file's bytes (packed and compressed: 0.6-0.9 s on blender) are a late stage too,
+        # wanted only at the end: put out after the bins, so that an idle worker takes those first
+        filed = chunks(builder, "graph_file", built.to_arrays())
     if found is not None:
         (radiance, radiance_gather), rstats = found
     else:
