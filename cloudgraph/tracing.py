@@ -263,3 +263,85 @@ def _aligned(a: np.ndarray, dtype) -> np.ndarray:
     out = buf[start : start + a.size * np.dtype(dtype).itemsize].view(dtype)
     out[:] = a
     return out
+
+
+# ------------------------------------------------------------------ walks of the graph build (§4.3)
+
+
+def trace_light_paths(
+    field: DensityField,
+    directions: np.ndarray,
+    bounds: tuple[np.ndarray, np.ndarray],
+    n_paths: int,
+    max_collisions: int,
+    seed: int,
+    first: int = 0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Paths first .. first + n_paths - 1 from directional lights, free-flight sampled through the
+    medium (Dr.Jit). Path i is the same whichever range it is traced in.
+
+    Args:
+        field: the medium's density field.
+        directions: (K, 3) unit directions the light travels; path i uses directions[i % K].
+        first: the index of the first path.
+        bounds: world bounding box of the medium (lo, hi).
+
+    Returns:
+        positions: (n_paths, max_collisions, 3) float32 collision points (NaN where none).
+        n_collisions: (n_paths,) int32 collisions per path; a path with fewer than
+            max_collisions left the medium after its last one.
+    """
+    lo, hi = bounds
+    centre, radius = (lo + hi) / 2, float(np.linalg.norm(hi - lo)) / 2 * 1.001
+    dirs = to_jit(mi.Vector3f, directions)
+    path = dr.arange(mi.UInt32, n_paths) + dr.opaque(mi.UInt32, first)
+    d = dr.gather(mi.Vector3f, dirs, path % len(directions))
+    frame = mi.Frame3f(d)
+    rng = jit_rng(n_paths, seed + first, first)  # lane i: first + i added to both
+    # Origins uniform on a disk perpendicular to the light that covers the medium
+    disk = mi.warp.square_to_uniform_disk_concentric(mi.Point2f(rng.next_float32(), rng.next_float32()))
+    o = mi.Point3f(
+        mi.Point3f(*(float(c) for c in centre))
+        + radius * (disk.x * mi.Vector3f(frame.s) + disk.y * mi.Vector3f(frame.t) - d)
+    )
+    buf = dr.full(mi.Float, np.nan, n_paths * max_collisions * 3)
+    n = _walk(field, o, d, rng, buf, max_collisions)
+    dr.eval(buf, n)  # one kernel: read one by one, each output would run the walk again
+    positions = np.array(buf, dtype=np.float32).reshape(n_paths, max_collisions, 3)
+    return positions, np.array(n, dtype=np.int32)
+
+
+@dr.syntax
+def _walk(
+    field: DensityField, o: mi.Point3f, d: mi.Vector3f, rng: mi.PCG32, buf: mi.Float, max_collisions: int
+) -> mi.UInt32:
+    """Random walks by free-flight sampling, writing each collision to buf[(path, k, xyz)]."""
+    idx = dr.arange(mi.UInt32, dr.width(o))
+    k = mi.UInt32(0)  # Collisions recorded on this path
+    active = mi.Bool(True)
+    while dr.hint(active, label="light_path"):
+        t, collided = sample_collision(field, o, d, rng, active)
+        o = dr.select(collided, o + t * d, o)
+        slot = (idx * max_collisions + k) * 3
+        dr.scatter(buf, o.x, slot, collided)
+        dr.scatter(buf, o.y, slot + 1, collided)
+        dr.scatter(buf, o.z, slot + 2, collided)
+        k[collided] += 1
+        d = dr.select(collided, uniform_sphere(rng), d)  # every collision continues: albedo comes later
+        active &= collided & (k < max_collisions)
+    return k
+
+
+def trace_flights(
+    field: DensityField, origins: np.ndarray, seed: int, first: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """One isotropic free flight from each origin: (collision points (M, 3), collided (M,)).
+    Flight i (counted from ``first``) is the same whichever range it is traced in."""
+    m = len(origins)
+    rng = jit_rng(m, seed + first, first)  # lane i: first + i added to both
+    o = to_jit(mi.Point3f, origins)
+    d = uniform_sphere(rng)
+    t, collided = sample_collision(field, o, d, rng, mi.Bool(True))
+    p = o + t * d
+    dr.eval(p, collided)  # one kernel: read one by one, each output would run the walk again
+    return from_jit(p), np.array(collided, bool)
