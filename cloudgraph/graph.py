@@ -2,11 +2,11 @@
 search ranges.
 
 Light paths are traced from directional lights through the medium by free-flight sampling
-(delta tracking, in Dr.Jit: the walks are in tracing.py): from six axis directions rather than the scene's light, so that
-the graph depends only on its key (see GRAPH_LIGHTS). Every *collision* (DESIGN.md's
-generalisation: not only scattering events) joins a node; per node we count every outgoing
-free-flight sample, escapes included, and per edge a -> b the samples from a that collide in
-b. Then
+(delta tracking, in Dr.Jit: the walks are in tracing.py): from six axis directions rather than
+the scene's light, so that the graph depends only on its key (see GRAPH_LIGHTS). Every
+*collision* (DESIGN.md's generalisation: not only scattering events) joins a node; per node we
+count every outgoing free-flight sample, escapes included, and per edge a -> b the samples from
+a that collide in b. Then
 
     C[a, b] = count(a -> b) / out_samples(a)        (collision probabilities)
     T       = C . diag(albedo)                       (formed in transport.py)
