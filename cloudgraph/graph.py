@@ -63,9 +63,9 @@ PRESETS: dict[str, dict] = {
         "min_out_samples": 16,
         "max_level": 3,
     },
-    # default's sampling with nodes about 4.5x as large in volume (a quarter of the nodes or
-    # fewer): still more accurate than the code issue 11 was filed against, less than default
-    # (README, "Scale")
+    # default's sampling with larger nodes (0.45 free paths, at least a voxel): a fifth to a half
+    # of default's nodes, under a quarter of those of the code issue 11 was filed against and
+    # more accurate than that code, less accurate than default (README, "Scale")
     "compact": {
         "radius_mfp": 0.45,
         "radius_voxels": (1.0, 3.0),
