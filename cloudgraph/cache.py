@@ -179,7 +179,7 @@ def _content(stats: dict) -> dict:
     return {k: v for k, v in stats.items() if not k.endswith("_s")}
 
 
-def _compact(a: np.ndarray) -> np.ndarray:
+def compact_uint(a: np.ndarray) -> np.ndarray:
     """Non-negative integers in the smallest unsigned type that holds them."""
     return a.astype(np.min_scalar_type(int(a.max())) if a.size else np.uint8)
 
@@ -240,10 +240,10 @@ def pack_graph(graph: Graph) -> dict:
         "positions": _planes(positions.T.ravel()),
         "search_unit": unit,
         "search_radius": _planes(search),
-        "out_samples": _planes(_compact(graph.out_samples)),
-        "row_lengths": _planes(_compact(lengths)),
-        "edge_gaps": _planes(_compact(_zigzag(ends - before))),
-        "counts": _planes(_compact(c.data)),
+        "out_samples": _planes(compact_uint(graph.out_samples)),
+        "row_lengths": _planes(compact_uint(lengths)),
+        "edge_gaps": _planes(compact_uint(_zigzag(ends - before))),
+        "counts": _planes(compact_uint(c.data)),
         "stats": json.dumps(_content(graph.stats)),
     }
 
@@ -268,7 +268,7 @@ def stored_positions(positions: np.ndarray) -> np.ndarray:
 
 def _nodes(z: dict) -> tuple[np.ndarray, np.ndarray]:
     positions = _box_positions(z["box_lo"], z["box_step"], _unplanes(z["positions"], "u").reshape(3, -1).T)
-    return positions, _unplanes(z["search_radius"], "f").astype(np.float32) * np.float32(z["search_unit"])
+    return positions, _search_radii(np.float32(z["search_unit"]), _unplanes(z["search_radius"], "f"))
 
 
 def _search_quantized(search_radius: np.ndarray) -> tuple[np.float32, np.ndarray]:
@@ -277,14 +277,18 @@ def _search_quantized(search_radius: np.ndarray) -> tuple[np.float32, np.ndarray
     return unit, (search_radius / unit).astype(np.float16)
 
 
+def _search_radii(unit: np.float32, search: np.ndarray) -> np.ndarray:
+    """(N,) float32 search ranges from :func:`_search_quantized`'s (unit, multiples)."""
+    return search.astype(np.float32) * unit
+
+
 def stored_graph(graph: Graph) -> Graph:
     """``graph`` as its file (:func:`pack_graph`) keeps it, without packing it: positions and
     search ranges as stored; its edges, counts and samples, which the file keeps exactly, as they
     are."""
     from .graph import Graph
 
-    unit, search = _search_quantized(graph.search_radius)
-    search_radius = search.astype(np.float32) * unit
+    search_radius = _search_radii(*_search_quantized(graph.search_radius))
     return Graph(
         stored_positions(graph.positions), search_radius, graph.out_samples, graph.counts, graph.stats
     )

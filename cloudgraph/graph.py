@@ -40,6 +40,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from .cache import compact_uint
 from .nodes import MEMBERS_KEPT, NodeCells, NodeTable, reduce_chunk, uniform_hash
 from .tracing import DensityField, cpu_threads, trace_flights, trace_light_paths
 from .volume import Volume, voxel_points
@@ -190,14 +191,13 @@ class Graph:
         """The graph as plain arrays (the inputs of a ``graph_file`` chunk, GraphBuilder); the
         counts in the smallest unsigned type that holds them (the file packs them anyway)."""
         c = self.counts
-        top = int(c.data.max()) if c.nnz else 0
         return {
             "positions": self.positions,
             "search_radius": self.search_radius,
             "out_samples": self.out_samples,
             "indptr": c.indptr,
             "indices": c.indices,
-            "counts": c.data.astype(np.min_scalar_type(top)),
+            "counts": compact_uint(c.data),
             "stats": np.frombuffer(json.dumps(self.stats).encode(), np.uint8),
         }
 
