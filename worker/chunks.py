@@ -337,8 +337,10 @@ def help_run(redis: Redis, run: str, make_builder, lease_s: float = LEASE_S) -> 
     r, holder = _Run(redis, run, lease_s), holder_name()
     done, busy, t_start = 0, 0.0, time.perf_counter()
     raw = redis.get(r.key("spec"))
+    if raw is None:  # the run ended before this helper started
+        return 0
     # The builder is made before the first task: while the coordinator puts out its first stage
-    builder = None if raw is None else make_builder(json.loads(raw))
+    builder = make_builder(json.loads(raw))
     while (raw := redis.get(r.key("spec"))) is not None:
         task = r.claim(holder)
         if task is None:
