@@ -17,9 +17,7 @@ import hashlib
 import io
 import json
 import os
-import tempfile
 import zipfile
-from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -27,6 +25,7 @@ import numpy as np
 
 from . import ENGINE_FORMAT_VERSION
 from .errors import CacheError
+from .files import write_atomic
 
 if TYPE_CHECKING:  # the API process imports this module; it must not load the renderer
     from .graph import Graph
@@ -133,28 +132,8 @@ class CacheStore:
             return None
 
 
-@contextmanager
-def atomic_writer(path: Path):
-    """A binary file that appears at ``path`` whole or not at all: written under a temporary name
-    in the same folder, synced, then renamed into place (removed if the writer fails)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            yield f
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def _write(path: Path, data: bytes) -> Path:
-    with atomic_writer(path) as f:
-        f.write(data)
-    return path
+    return write_atomic(path, data)
 
 
 def _npz_bytes(kind: str, compress: bool = False, **arrays) -> bytes:

@@ -14,8 +14,8 @@ import time
 from pathlib import Path
 from typing import BinaryIO
 
-from .cache import atomic_writer
 from .errors import VolumeError
+from .files import atomic_writer
 from .volume import VDB_MAGIC, volume_info
 
 CHUNK = 1 << 20
