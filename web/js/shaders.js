@@ -1,6 +1,7 @@
 // GLSL ES 3.00 sources of the real-time view: a full-screen triangle and the ray march of the
 // radiance field, the march of the server's `field` estimator (cloudgraph/integrators/graph.py;
-// thesis Eq. 4.24 integrated segment by segment in closed form, DESIGN.md "The radiance field"):
+// thesis Eq. 4.24 integrated segment by segment in closed form,
+// docs/method.md, "The radiance field"):
 //   L_in(x) = E exp(-tau_light(x)) / 4pi + L_ms(x)
 //   per segment [t, t + dt]: sigma_t the mean of its end values, L_in linear in optical depth
 //   between its end values L0, L1, dtau = sigma_t dt:
