@@ -1,0 +1,157 @@
+"""Helpers for the web tests that drive the page in a real service (tests/web/test_web_*.py):
+screenshots, the errors shown, waiting for a frame or a cache, reading what the viewport shows,
+orbiting, the camera, and a page opened on smoke1's draft cache."""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+
+from ..harness import ROOT
+
+ARTIFACTS = ROOT / "test-artifacts" / "web"
+
+# Gray values at 64x64 of an image source (an <img> or an ImageBitmap), drawn through a canvas.
+GRAY_64_JS = """function gray64(src) {
+  const c = document.createElement('canvas');
+  c.width = 64; c.height = 64;
+  const ctx = c.getContext('2d');
+  ctx.drawImage(src, 0, 0, 64, 64);
+  const d = ctx.getImageData(0, 0, 64, 64).data;
+  const out = [];
+  for (let i = 0; i < d.length; i += 4) out.push((d[i] + d[i + 1] + d[i + 2]) / 3);
+  return out;
+}"""
+
+# ... of the viewport image, in the page.
+PIXELS_JS = "() => { " + GRAY_64_JS + " return gray64(document.querySelector('#view-img')); }"
+
+
+def shot(page, name: str) -> None:
+    page.screenshot(path=str(ARTIFACTS / f"{name}.png"), full_page=True)
+
+
+def errors_shown(page) -> list[str]:
+    return page.locator("#errors li .msg").all_inner_texts()
+
+
+def count_event_sources(page) -> None:
+    """Records the paths of the EventSources that the page opens from now on."""
+    page.evaluate(
+        """() => {
+        window.__eventSources = [];
+        const Original = window.EventSource;
+        window.EventSource = class extends Original {
+          constructor(url, init) {
+            super(url, init);
+            window.__eventSources.push(new URL(url, location.href).pathname.replace(/[^/]+\\/events$/, ''));
+          }
+        };
+      }"""
+    )
+
+
+def wait_final(page, after_frame: int) -> None:
+    """Waits for the server viewer's final (256 px, 4 passes) image after ``after_frame``."""
+    page.wait_for_function(
+        f"""() => {{
+          const img = document.querySelector('#view-img');
+          return Number(img.dataset.frame || 0) > {after_frame} && img.dataset.final === '1'
+            && !document.querySelector('#viewport').dataset.busy;
+        }}"""
+    )
+
+
+def frames_drawn(page) -> int:
+    return int(page.get_attribute("#viewport", "data-frames") or 0)
+
+
+def wait_rest(page, after_frames: int) -> None:
+    """Waits for the real-time view's full-size frame at rest, drawn after ``after_frames``."""
+    page.wait_for_function(
+        f"""() => {{
+          const v = document.querySelector('#viewport');
+          return v.dataset.renderer === 'webgl' && v.dataset.state === 'rest'
+            && Number(v.dataset.frames || 0) > {after_frames};
+        }}"""
+    )
+
+
+# ... of a PNG (given as base64), decoded in the page.
+PNG_PIXELS_JS = (
+    "async (b64) => { "
+    + GRAY_64_JS
+    + """
+  const bytes = Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
+  return gray64(await createImageBitmap(new Blob([bytes], { type: 'image/png' })));
+}"""
+)
+
+
+def shown_pixels(page) -> list[float]:
+    """Gray values of what the viewport shows (a screenshot: a WebGL canvas cannot be read
+    back once it has been shown)."""
+    png = page.locator("#viewport").screenshot()
+    return page.evaluate(PNG_PIXELS_JS, base64.b64encode(png).decode())
+
+
+# Drags on the viewport with pointer events sent from inside the page every 8 ms (a mouse's
+# rate; Playwright's own mouse moves wait for a round trip each), after a real mouse press.
+# Records the internal size of every frame drawn meanwhile.
+ORBIT_JS = """([x, y, ms, dx]) => new Promise((done) => {
+  const el = document.querySelector('#viewport');
+  const sizes = [];
+  const obs = new MutationObserver(() => sizes.push(Number(el.dataset.internal)));
+  obs.observe(el, { attributes: true, attributeFilter: ['data-frames'] });
+  const f0 = Number(el.dataset.frames || 0);
+  const t0 = performance.now();
+  let i = 0;
+  const id = setInterval(() => {
+    i++;
+    const t = performance.now() - t0;
+    el.dispatchEvent(new PointerEvent('pointermove', {
+      pointerId: 1, isPrimary: true, pointerType: 'mouse', buttons: 1, bubbles: true,
+      clientX: x + dx * t / ms + 20 * Math.sin(i / 9), clientY: y + 15 * Math.sin(i / 13) }));
+    if (t >= ms) {
+      clearInterval(id);
+      obs.disconnect();
+      const seconds = (performance.now() - t0) / 1000;
+      done({ fps: (Number(el.dataset.frames) - f0) / seconds, sizes, seconds });
+    }
+  }, 8);
+})"""
+
+
+def orbit(page, ms: int = 3000, dx: float = 120) -> dict:
+    box = page.locator("#viewport").bounding_box()
+    x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    page.mouse.move(x, y)
+    page.mouse.down()
+    try:
+        return page.evaluate(ORBIT_JS, [x, y, ms, dx])
+    finally:
+        page.mouse.up()
+
+
+def mean_abs(a, b) -> float:
+    return sum(abs(p - q) for p, q in zip(a, b, strict=True)) / len(a)
+
+
+def camera(page):
+    eye = json.loads(page.get_attribute("#camera-info", "data-eye"))
+    target = json.loads(page.get_attribute("#camera-info", "data-target"))
+    return eye, target, math.dist(eye, target)
+
+
+def open_scene(pg, service, data_dir) -> None:
+    """Loads the page with smoke1 uploaded (idempotent) and precomputes its draft cache (found
+    on the server when an earlier test built it)."""
+    with service.client() as client, (data_dir / "smoke1.vdb").open("rb") as f:
+        assert client.post("/v1/volumes", files={"file": ("smoke1.vdb", f)}).status_code in (200, 201)
+    pg.goto(service.url + "/")
+    pg.wait_for_selector("#volume-select option[value]:not([value=''])", state="attached")
+    pg.select_option("#quality", "draft")
+    pg.click("#precompute")
+    pg.wait_for_selector("#cache-state[data-state=ready], #cache-state[data-state=failed]", timeout=300_000)
+    assert pg.get_attribute("#cache-state", "data-state") == "ready", errors_shown(pg)
