@@ -45,7 +45,7 @@ bench: setup
 clean:
 	rm -rf $(VENV) build *.egg-info
 
-# The cluster (compose.yaml; README "Cluster"). Docker comes from Debian (docker.io,
+# The cluster (compose.yaml; docs/cluster.md). Docker comes from Debian (docker.io,
 # docker-compose, debootstrap: installed and dockerd started where missing, as root); the base
 # image is made from Debian's archive (no image registry needed), then the image on it.
 .PHONY: docker-ready base-image cluster-image cluster-test cluster-ready

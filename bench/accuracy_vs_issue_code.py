@@ -26,7 +26,11 @@ from cloudgraph.mitsuba_scene import set_variant
 set_variant()
 
 from cloudgraph.cache import CacheStore  # noqa: E402
-from cloudgraph.integrators.graph import GraphRenderer  # noqa: E402
+
+try:  # this code's module, or the old code's
+    from cloudgraph.render import GraphRenderer  # noqa: E402
+except ImportError:
+    from cloudgraph.integrators.graph import GraphRenderer  # noqa: E402
 from cloudgraph.precompute import precompute  # noqa: E402
 from cloudgraph.scene import parse_scene  # noqa: E402
 
@@ -53,7 +57,7 @@ def main(mode: str, out: Path, items: list[str]) -> None:
     stores = {}
     for item in items:
         if mode == "prepare":
-            from cloudgraph.bench import LIGHT, _scene, bench_scenes, cameras, reference
+            from bench.harness import LIGHT, _scene, bench_scenes, cameras, reference
 
             name, view, albedo, spp = item.split(":")
             bs = bench_scenes([name])[0]

@@ -17,7 +17,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from cloudgraph.bench import machine  # noqa: E402
+from bench.harness import machine  # noqa: E402
 from tests.harness import start_service  # noqa: E402
 
 

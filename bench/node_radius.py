@@ -19,11 +19,11 @@ from cloudgraph.mitsuba_scene import set_variant
 
 set_variant()
 
-from cloudgraph.bench import LIGHT, _scene, bench_scenes, cameras, reference  # noqa: E402
+from bench.harness import LIGHT, _scene, bench_scenes, cameras, reference  # noqa: E402
 from cloudgraph.cache import CacheStore  # noqa: E402
-from cloudgraph.integrators.graph import GraphRenderer  # noqa: E402
 from cloudgraph.metrics import bias_metrics  # noqa: E402
 from cloudgraph.precompute import precompute  # noqa: E402
+from cloudgraph.render import GraphRenderer  # noqa: E402
 
 bs = bench_scenes([sys.argv[1]])[0]
 view, albedo, spp_ref = sys.argv[2], float(sys.argv[3]), int(sys.argv[4])

@@ -21,7 +21,7 @@ from cloudgraph.mitsuba_scene import set_variant
 set_variant()
 
 import cloudgraph  # noqa: E402
-from cloudgraph.bench import LIGHT, _scene, bench_scenes, cameras  # noqa: E402
+from bench.harness import LIGHT, _scene, bench_scenes, cameras  # noqa: E402
 from cloudgraph.cache import CacheStore  # noqa: E402
 from cloudgraph.precompute import precompute  # noqa: E402
 from cloudgraph.render import render_volpath  # noqa: E402

@@ -1,4 +1,4 @@
-"""Scale benchmark of one precompute over several workers (README, "Scale"): the same cache
+"""Scale benchmark of one precompute over several workers (docs/measurements.md, "Scale"): the same cache
 built through the service by 1 and by N workers of one Dr.Jit thread each, each in a fresh
 service (kernels compiled in every run alike), and whether the cache files are the same bytes.
 Runs alternate (1, N, 1, N, ...) and the speed-up is the ratio of the medians: a shared
@@ -26,7 +26,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from cloudgraph.bench import machine  # noqa: E402
+from bench.harness import machine  # noqa: E402
 from tests.harness import job_of, start_service, wait_job  # noqa: E402
 
 

@@ -1,4 +1,8 @@
-"""The ``cloudgraph`` command line. Bad input exits with status 2 and one line on stderr."""
+"""The ``cloudgraph`` command line. Bad input exits with status 2 and one line on stderr.
+
+Each subcommand imports what it needs when it runs: ``schema`` and ``info`` start without
+loading Mitsuba or Dr.Jit.
+"""
 
 from __future__ import annotations
 
@@ -33,7 +37,7 @@ def _cmd_render(args: argparse.Namespace) -> None:
     if args.integrator == "volpath":
         image = render_volpath(scene, volume, rr=args.rr)
     else:
-        from .integrators.graph import render_graph
+        from .render import render_graph
 
         image = render_graph(
             scene, volume, args.quality, _store(args), args.estimator, progress=_progress_bar()
@@ -102,8 +106,12 @@ def _cmd_precompute(args: argparse.Namespace) -> None:
 
 
 def _cmd_bench(args: argparse.Namespace) -> None:
-    from .bench import run_bench, run_converged
     from .mitsuba_scene import set_variant
+
+    try:  # the harness lives beside the engine, in the checkout's bench/
+        from bench.harness import run_bench, run_converged
+    except ImportError:
+        raise CloudgraphError("cloudgraph bench runs from a source checkout (its bench/ folder)") from None
 
     set_variant()
     if args.converged:
@@ -185,7 +193,7 @@ def build_parser() -> argparse.ArgumentParser:
     pc.add_argument("--cache-dir", help="cache folder (default $CLOUDGRAPH_CACHE_DIR or ~/.cache/cloudgraph)")
     pc.set_defaults(func=_cmd_precompute)
 
-    b = sub.add_parser("bench", help="graph vs volpath: speed and accuracy (BENCHMARK.md)")
+    b = sub.add_parser("bench", help="graph vs volpath: speed and accuracy (docs/benchmark.md)")
     b.add_argument("--quick", action="store_true", help="a small subset, minutes on two cores")
     b.add_argument(
         "--converged",

@@ -1,4 +1,5 @@
-"""The radiance field: the cache baked onto a grid, for a noise-free camera stage (DESIGN.md).
+"""The radiance field: the cache baked onto a grid, for a noise-free camera stage (docs/method.md,
+"The radiance field").
 
 After transport, the in-scattered radiance of Eq. 4.24 is evaluated once on a grid aligned with
 the density grid, split as the ``gather`` estimator splits it:
@@ -17,19 +18,8 @@ the density grid, split as the ``gather`` estimator splits it:
   grid :data:`MS_COARSEN` times coarser per axis (more for large media).
 
 A camera render is then a deterministic ray march with two texture lookups per step (the
-``field`` estimator of the graph integrator, and the page's WebGL view). One file, the same bytes
-for both: a small JSON header and float16 arrays, gzip-compressed (:func:`encode`):
-
-    bytes 0..7     b"CGFIELD1"
-    bytes 8..11    uint32 LE, header length H
-    12..12+H       UTF-8 JSON header: format, version, radiance_key, unit_to_world (4x4),
-                   world_bbox, light {direction, irradiance}, albedo, step, arrays
-    then           arrays at header["arrays"][name]["offset"] (16-byte aligned), little-endian,
-                   C order, (nz, ny, nx[, 3]): x varies fastest; value = stored * scale
-
-Arrays: ``sigma_t`` (per world unit), ``tau_light``, ``radiance_ms`` (RGB, per-channel scale)
-and ``majorant`` (max sigma_t over blocks of :data:`BLOCK`^3 field voxels, dilated by one voxel:
-empty-space skipping). Grid values sit at texel centres, (i + 0.5) / n of the unit cube that
+``field`` estimator of the graph integrator, and the page's WebGL view), of one file
+(field_file.py). Grid values sit at texel centres, (i + 0.5) / n of the unit cube that
 ``Volume.unit_to_world`` maps onto the medium box, and are interpolated trilinearly (clamped).
 Only points within one voxel of some density are baked (the rest hold 0): interpolation at a
 point where sigma_t > 0 reads no other.
@@ -37,12 +27,7 @@ point where sigma_t > 0 reads no other.
 
 from __future__ import annotations
 
-import dataclasses
-import gzip
-import json
-import struct
 import time
-import zlib
 from dataclasses import dataclass
 
 import drjit as dr
@@ -51,8 +36,10 @@ import numpy as np
 from scipy.ndimage import maximum_filter
 from scipy.spatial import cKDTree
 
+from .chunks import placed
+from .field_file import RadianceField, pack_array
+from .spatial import NodeGrid, node_bins
 from .tracing import (
-    BLOCK,
     DensityField,
     block_majorant,
     cpu_threads,
@@ -65,8 +52,6 @@ from .tracing import (
     towards_light,
 )
 
-MAGIC = b"CGFIELD1"
-VERSION = 1
 #: Field grid points at most (the density grid's resolution up to this; coarser beyond, by one
 #: integer factor on every axis). 2^24 points: 64 MiB of float32 per scalar array in memory.
 MAX_POINTS = 1 << 24
@@ -93,107 +78,6 @@ _CHUNK = {"field_tau": TAU_CHUNK, "field_lookup": LOOKUP_CHUNK, "field_ms": MS_C
 TAU_STEP = 0.5
 #: Optical depth where the light march stops: exp(-16) ~ 1e-7 of the light is left.
 TAU_MAX = 16.0
-
-
-@dataclass
-class RadianceField:
-    """A baked field (see the module docstring), float32 in memory, (nz, ny, nx[, 3]) arrays.
-
-    Attributes:
-        sigma_t: extinction per world unit at the field grid points.
-        tau_light: optical depth from each point to the light.
-        radiance_ms: (mz, my, mx, 3) in-scattered radiance after the first scattering.
-        majorant: (bz, by, bx) max sigma_t per block of BLOCK^3 field voxels.
-        meta: the header (without ``arrays``): unit_to_world, light, albedo, step, ...
-        packed: arrays already encoded for :meth:`encode` (:func:`_pack` of the arrays as they
-            are): a bake packs the ones it has while its last chunks run.
-    """
-
-    sigma_t: np.ndarray
-    tau_light: np.ndarray
-    radiance_ms: np.ndarray
-    majorant: np.ndarray
-    meta: dict
-
-    packed: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
-
-    def encode(self) -> bytes:
-        """The gzip-compressed binary layout (module docstring): one gzip member whose deflate
-        stream is the header's and each array's, each deflated on its own (:func:`_deflate`), so
-        that arrays can be packed as soon as they are known."""
-        packed = {name: self.packed.get(name) or _pack(name, getattr(self, name)) for name in ARRAYS}
-        table, offset = {}, 0
-        for name in ARRAYS:
-            table[name] = {**packed[name][0], "offset": offset}  # relative to the data section
-            offset += len(packed[name][1])
-        header = {"format": "cloudgraph-field", "version": VERSION, **self.meta, "arrays": table}
-        # Offsets are from the start of the body, and the header's length moves the data: grow
-        # the data's start until the header fits in front of it.
-        start = 0
-        while True:
-            text = json.dumps({**header, "arrays": _shifted(table, start)}).encode()
-            need = -(-(12 + len(text)) // 16) * 16
-            if need <= start:
-                break
-            start = need
-        head = MAGIC + struct.pack("<I", len(text)) + text
-        head += b" " * (start - len(head))
-        crc, size = zlib.crc32(head), len(head)
-        for name in ARRAYS:
-            crc, size = zlib.crc32(packed[name][1], crc), size + len(packed[name][1])
-        deflated = [_deflate(head)] + [packed[name][2] for name in ARRAYS]
-        end = zlib.compressobj(1, zlib.DEFLATED, -15).flush()  # the final (empty) block
-        return _GZIP_HEADER + b"".join(deflated) + end + struct.pack("<II", crc, size & 0xFFFFFFFF)
-
-    @classmethod
-    def decode(cls, data: bytes) -> RadianceField:
-        """Reads :meth:`encode`'s bytes (gzip-compressed or not)."""
-        if data[:2] == b"\x1f\x8b":
-            data = gzip.decompress(data)
-        if data[:8] != MAGIC:
-            raise ValueError("not a cloudgraph field (bad magic)")
-        (n,) = struct.unpack("<I", data[8:12])
-        header = json.loads(data[12 : 12 + n])
-        out = {}
-        for name, a in header.pop("arrays").items():
-            count = int(np.prod(a["shape"]))
-            raw = np.frombuffer(data, "<f2", count, a["offset"]).reshape(a["shape"])
-            out[name] = raw.astype(np.float32) * np.asarray(a["scale"], np.float32)
-        for k in ("format", "version"):
-            header.pop(k)
-        return cls(meta=header, **out)
-
-
-#: The arrays of a field file, in file order.
-ARRAYS = ("sigma_t", "tau_light", "radiance_ms", "majorant")
-#: A gzip member's header: deflate, no name, mtime 0, fastest level, unknown OS.
-_GZIP_HEADER = b"\x1f\x8b\x08\x00\x00\x00\x00\x00\x04\xff"
-
-
-def _pack(name: str, a: np.ndarray) -> tuple[dict, bytes, bytes]:
-    """One array of a field file: (header entry without its offset, float16 bytes padded to 16,
-    the same deflated)."""
-    a = np.asarray(a, np.float32)
-    peak = a.reshape(-1, a.shape[-1]).max(axis=0) if name == "radiance_ms" else a.max(initial=0.0)
-    scale = np.where(np.asarray(peak) > 0, peak, 1.0)
-    raw = np.ascontiguousarray(a / scale, "<f2").tobytes()
-    raw += b"\0" * (-len(raw) % 16)
-    entry = {"dtype": "float16", "shape": list(a.shape), "scale": np.asarray(scale, float).tolist()}
-    if name == "majorant":
-        entry["block"] = BLOCK
-    return entry, raw, _deflate(raw)
-
-
-def _deflate(data: bytes) -> bytes:
-    """Raw deflate blocks of ``data`` at level 1 (on smoke1 a 4.46 MB file in 0.15 s, where level 6
-    took 0.32 s for 4.37 MB), ended by a sync flush: such blocks, each from a fresh compressor,
-    concatenate into one deflate stream."""
-    c = zlib.compressobj(1, zlib.DEFLATED, -15)
-    return c.compress(data) + c.flush(zlib.Z_SYNC_FLUSH)
-
-
-def _shifted(table: dict, start: int) -> dict:
-    return {k: {**v, "offset": v["offset"] + start} for k, v in table.items()}
 
 
 # ------------------------------------------------------------------ grids
@@ -226,8 +110,8 @@ class FieldPoints:
     """The field grid of a medium: its ``shape`` (nx, ny, nz), sigma_t at its points (nz, ny,
     nx), which points are baked (``near``, flat: within one voxel of some density; the rest stay
     zero) and where those are (``points``, (M, 3) world), ``voxel`` its smallest world step.
-    Made once, by the process that bakes the field (``GraphBuilder.field_points``), from the
-    medium alone; the bake's chunks get the points they need as inputs."""
+    Made once, by the process that bakes the field (:meth:`of`, precompute.py), from the medium
+    alone; the bake's chunks get the points they need as inputs."""
 
     shape: tuple
     sigma_t: np.ndarray
@@ -259,55 +143,52 @@ def _to_world(u2w: np.ndarray, u: np.ndarray) -> np.ndarray:
     return u @ u2w[:3, :3].T + u2w[:3, 3]
 
 
-def march_light(builder, light_dir, chunks):
+def march_light(builder, fp: FieldPoints, light_dir, chunks):
     """Puts out the bake's light march (``field_tau`` chunks: the optical depth to the light from
     every field point, Eq. 4.22 at a point, deterministic) and returns the iterator of its
     results. It needs the medium and the light only, so a precompute puts it out before the
     graph is written (precompute.py)."""
-    fp, to_light = builder.field_points, towards_light(light_dir)
+    to_light = towards_light(light_dir)
     step = np.array([TAU_STEP * fp.voxel])
     return chunks(builder, "field_tau", {"points": fp.points, "to_light": to_light, "step": step})
 
 
 def bake_field(
     builder,
+    fp: FieldPoints,
     graph,
     radiance_gather: np.ndarray,
     albedo,
     light_dir,
     irradiance,
-    radiance_key: str = "",
-    chunks=None,
+    radiance_key: str,
+    chunks,
     marched=None,
     bins=None,
 ) -> tuple[RadianceField, dict]:
     """Bakes the field of a radiance cache (a variant must be set).
 
     Args:
-        builder: the :class:`~cloudgraph.graph.GraphBuilder` of the graph (volume, medium, node
-            radius r, the Eq. 4.25 weight's floor, the field's points).
+        builder: the :class:`~cloudgraph.build.GraphBuilder` of the graph (volume, medium, node
+            radius r, the Eq. 4.25 weight's floor).
+        fp: the field's grid points (:meth:`FieldPoints.of` the builder's volume and medium).
         graph: the :class:`~cloudgraph.graph.Graph` (positions, search ranges, counts).
         radiance_gather: (N, 3) node radiance with one scattering event fewer (as ``gather``).
         albedo, irradiance: (3,); light_dir: (3,) direction the light travels.
-        chunks: runs the marches' chunks (:func:`field_chunk`), as in ``build_graph``.
+        chunks: runs the marches' chunks (:func:`field_chunk`; stages.py), as in ``build_graph``.
         marched: the light march's results (:func:`march_light`), if already put out.
-        bins: the graph's nodes binned (:func:`~cloudgraph.integrators.graph.node_bins`), if made.
+        bins: the graph's nodes binned (:func:`~cloudgraph.spatial.node_bins`), if made.
 
     Returns:
         (field, stats): stats hold the bake's seconds per part.
     """
-    from .graph import local_chunks, placed
-    from .integrators.graph import node_bins
-
     volume = builder.volume
-    chunks = chunks or local_chunks
     t_start = time.perf_counter()
     u2w = np.asarray(volume.unit_to_world, float)
-    fp = builder.field_points
     shape, near, points, voxel = fp.shape, fp.near, fp.points, fp.voxel
     nx, ny, nz = shape
     to_light = towards_light(light_dir)
-    marched = marched if marched is not None else march_light(builder, light_dir, chunks)
+    marched = marched if marched is not None else march_light(builder, fp, light_dir, chunks)
 
     # Multiple scattering, as ``gather`` computes it but on the grid: one more flight from the
     # grid point, to p'', where the graph's albedo L' stands in for the rest (Eq. 4.25):
@@ -341,7 +222,7 @@ def bake_field(
     t_tau = time.perf_counter() - t0
     majorant = block_majorant(fp.sigma_t)
     packed = {
-        name: _pack(name, a)
+        name: pack_array(name, a)
         for name, a in (("sigma_t", fp.sigma_t), ("tau_light", tau_light), ("majorant", majorant))
     }
     t0 = time.perf_counter()
@@ -377,10 +258,10 @@ def field_chunk(builder, stage: str, index: int, inputs: dict) -> tuple[np.ndarr
     """One chunk of the bake, at its ``points`` (world units): ``field_tau``, optical depth to the
     light (``to_light``); ``field_lookup``, albedo L'_search (Eq. 4.25) from the nodes'
     ``positions``, ``search_radius`` and ``G``, binned (``start``, ``entries``, ``grid``:
-    :func:`~cloudgraph.integrators.graph.node_bins`); ``field_ms``, the multiple-scattering
+    :func:`~cloudgraph.spatial.node_bins`); ``field_ms``, the multiple-scattering
     gather through the grid ``G``. Returns (first point, values): chunks may come back in any
     order, from any worker (worker/chunks.py), and each gives the same values wherever it runs.
-    The points come as inputs: the field's grid (``builder.field_points``, 0.4 s on smoke1) is
+    The points come as inputs: the field's grid (:class:`FieldPoints`, 0.4 s on smoke1) is
     made once, by the coordinator."""
     size, medium = _CHUNK[stage], builder.field
     a = index * size
@@ -404,8 +285,6 @@ def field_chunks(stage: str, inputs: dict) -> int:
 def _lookup(inputs: dict, q: np.ndarray, node_radius: float) -> np.ndarray:
     """(M, 3) L'_search of the nodes' ``G`` at (M, 3) points q (a ``field_lookup`` chunk), and
     where no node reaches, the nearest node's (:func:`fill_unreached`)."""
-    from .integrators.graph import NodeGrid
-
     positions, search_radius, node_G = (np.asarray(inputs[k]) for k in ("positions", "search_radius", "G"))
     bins = tuple(np.asarray(inputs[k]) for k in ("start", "entries", "grid"))
     grid = NodeGrid.build(positions, search_radius, node_G, bins)
@@ -424,8 +303,6 @@ def _scatter(mask: np.ndarray, values: np.ndarray, shape) -> np.ndarray:
 def _coarse_mask(near: np.ndarray, shape, k: int) -> np.ndarray:
     """Flat mask of the coarse (shape = (mx, my, mz)) grid points whose interpolation reaches a
     fine point of ``near`` ((nz, ny, nx)): its block's, dilated by one coarse point."""
-    from scipy.ndimage import maximum_filter
-
     mx, my, mz = shape
     padded = np.pad(near, [(0, m * k - n) for m, n in zip((mz, my, mx), near.shape, strict=True)])
     coarse = padded.reshape(mz, k, my, k, mx, k).any(axis=(1, 3, 5))

@@ -10,7 +10,7 @@ node positions), and T_r is convex in position, so a disk mean overestimates it 
 light's optical depth varies across the node; at the medium's edge part of the disk even lies
 outside it. Measured on the bench sphere (optical radius 10, albedo 1, `gather` converged against
 a 4096-spp volpath reference), image mean ratio side/back-lit: disk 1.020 / 1.063, point
-0.993 / 0.999; noise cloud 1.012 / 1.022 against 1.002 / 1.005 (README, "Accuracy").
+0.993 / 0.999; noise cloud 1.012 / 1.022 against 1.002 / 1.005 (docs/measurements.md, "Accuracy").
 """
 
 from __future__ import annotations

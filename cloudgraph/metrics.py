@@ -40,7 +40,7 @@ def binned(image: np.ndarray, k: int = 4) -> np.ndarray:
 
 
 def bias_metrics(image: np.ndarray, reference: np.ndarray, k: int = 4) -> dict[str, float]:
-    """Bias, with per-pixel noise mostly averaged away (DESIGN.md, "What is known about accuracy"):
+    """Bias, with per-pixel noise mostly averaged away (docs/method.md, "What is known about accuracy"):
     relMAE of k x k-binned images and the ratio of the image means."""
     a, b = binned(image, k), binned(reference, k)
     return {

@@ -13,7 +13,7 @@ import numpy as np
 from .scene import CameraSpec, Scene
 from .volume import Volume
 
-#: Russian roulette depth that turns roulette off in practice (DESIGN.md, "What is known about
+#: Russian roulette depth that turns roulette off in practice (docs/method.md, "What is known about
 #: accuracy": default RR is firefly-ridden and biased low in thick albedo-1 clouds).
 RR_OFF = 100000
 

@@ -15,7 +15,7 @@ from .errors import VolumeError
 from .volume import Volume, voxel_points
 
 if TYPE_CHECKING:
-    from .graph import BuildParams
+    from .params import BuildParams
 
 
 class NodeCells:

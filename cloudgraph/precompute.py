@@ -9,32 +9,34 @@ from __future__ import annotations
 
 import logging
 import time
-import weakref
 from dataclasses import dataclass
 
 import numpy as np
 
-from .cache import (
-    CacheStore,
-    graph_key,
+from .build import GraphBuilder, build_graph
+from .cache import CacheStore, cache_keys
+from .chunks import placed
+from .errors import CacheError
+from .field import FieldPoints, bake_field, march_light
+from .field_file import RadianceField
+from .graph import Graph
+from .graph_file import (
     pack_radiance,
-    radiance_key,
+    radiance_file,
+    read_graph,
+    read_nodes,
+    read_radiance,
     stored_graph,
     stored_positions,
     unpack_radiance,
-    volume_id,
 )
-from .errors import CacheError
-from .field import RadianceField, bake_field, march_light
-from .graph import BuildParams, Graph, GraphBuilder, build_graph, build_params, local_chunks, placed
+from .params import LIGHTING, BuildParams, build_params
 from .scene import Scene
+from .stages import local_chunks
 from .transport import transport
 from .volume import Volume
 
 log = logging.getLogger(__name__)
-
-#: Lighting parameters that enter the radiance key.
-LIGHTING = {"samples": 16, "tol": 1e-5, "transport": "krylov"}
 
 
 @dataclass
@@ -45,7 +47,7 @@ class RadianceCache:
         radiance: (N, 3) float32 node radiance L' (Algorithm 1), phase function included.
         radiance_gather: (N, 3) the same with one scattering event fewer (max_depth - 1), for
             estimators that scatter once more before looking up (the same when unbounded).
-        field: the baked :class:`~cloudgraph.field.RadianceField` (the ``field`` estimator's),
+        field: the baked :class:`~cloudgraph.field_file.RadianceField` (the ``field`` estimator's),
             decoded from ``field_data`` (the field file's bytes) when first used: a precompute job
             never uses it.
         keys: volume_id, graph_key, radiance_key.
@@ -75,7 +77,7 @@ class RadianceCache:
     @property
     def graph(self) -> Graph:
         if self._graph is None:
-            self._graph = self.store.load_graph(self.keys["graph_key"])
+            self._graph = read_graph(self.store.graph_path(self.keys["graph_key"]))
             if self._graph is None:
                 raise CacheError("the graph of this cache was evicted; run the precompute again")
         return self._graph
@@ -85,30 +87,10 @@ class RadianceCache:
         if self._graph is not None:
             return self._graph.positions, self._graph.search_radius
         if self._nodes is None:
-            self._nodes = self.store.load_nodes(self.keys["graph_key"])
+            self._nodes = read_nodes(self.store.graph_path(self.keys["graph_key"]))
             if self._nodes is None:
                 raise CacheError("the graph of this cache was evicted; run the precompute again")
         return self._nodes
-
-
-_VOLUME_IDS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
-
-
-def cache_keys(scene: Scene, volume: Volume, params: BuildParams) -> dict:
-    """volume_id, graph_key and radiance_key of a scene (the volume's hash is kept per object)."""
-    vid = _VOLUME_IDS.get(volume)
-    if vid is None:
-        vid = _VOLUME_IDS[volume] = volume_id(volume)
-    gkey = graph_key(vid, scene.medium.density_scale, params.to_dict())
-    rkey = radiance_key(
-        gkey,
-        scene.medium.albedo_rgb(),
-        scene.light.unit_direction(),
-        scene.light.irradiance_rgb(),
-        scene.render.max_depth,
-        LIGHTING,
-    )
-    return {"volume_id": vid, "graph_key": gkey, "radiance_key": rkey}
 
 
 def lighting_inputs(positions: np.ndarray, scene: Scene, params: BuildParams) -> dict:
@@ -135,8 +117,8 @@ def precompute(
     """Finds or builds the radiance cache for the scene's (volume, medium, light, depth).
 
     ``progress(stage, fraction)`` is called as it goes; ``chunks`` runs the chunks of the graph
-    build, the direct lighting and the field bake (:class:`~cloudgraph.graph.GraphBuilder`): here,
-    or over workers (worker/chunks.py), with the same result. A variant must be set.
+    build, the direct lighting and the field bake (stages.py): here, or over workers, with the
+    same result. A variant must be set.
     """
     store = store or CacheStore()
     progress = progress or (lambda stage, fraction: None)
@@ -145,9 +127,16 @@ def precompute(
     gkey, rkey = keys["graph_key"], keys["radiance_key"]
     light_dir = np.asarray(scene.light.unit_direction())
 
-    found = store.load_radiance(rkey)
+    found = read_radiance(store.radiance_path(rkey))
     found_field = store.load_field(rkey)
     graph, graph_reused, builder, lit, t_light, marched = None, True, None, None, 0.0, None
+    points = None  # the field's grid points, made once when the field needs them
+
+    def field_points() -> FieldPoints:
+        nonlocal points
+        if points is None:
+            points = FieldPoints.of(volume, builder.field)
+        return points
 
     def light(positions):
         # The direct light's chunks, at the node positions as stored, go out as soon as the
@@ -163,24 +152,24 @@ def precompute(
         def march():
             # The field's light march needs the medium and the light only: it goes out early,
             # for workers that share this precompute to run whenever the other stages leave them
-            # idle (GraphBuilder.late_stages): before the graph is read, or right after a new
+            # idle (stages.LATE_STAGES): before the graph is read, or right after a new
             # graph's light paths (helpers start on those while this worker finds the field's
             # points)
             nonlocal marched
             if marched is None and found_field is None:
-                marched = march_light(builder, light_dir, chunks)
+                marched = march_light(builder, field_points(), light_dir, chunks)
 
         if store.graph_path(gkey).is_file():
             march()
-        graph = store.load_graph(gkey)
+        graph = read_graph(store.graph_path(gkey))
         graph_reused = graph is not None
         if graph is None:
             built = build_graph(
                 volume,
                 scene.medium.density_scale,
                 params,
-                lambda s, f: progress(s, 0.7 * f),
                 chunks,
+                lambda s, f: progress(s, 0.7 * f),
                 builder,
                 nodes_found=(lambda p: light(stored_positions(p))) if found is None else None,
                 started=march,
@@ -216,8 +205,8 @@ def precompute(
         else:
             L_gather = transport(C, L_d, albedo, depth - 1, LIGHTING["tol"], cancelled=still_wanted)[0]
         t_transport = time.perf_counter() - t0
-        radiance_file = pack_radiance(L, L_gather)
-        radiance, radiance_gather = unpack_radiance(radiance_file)
+        packed = pack_radiance(L, L_gather)
+        radiance, radiance_gather = unpack_radiance(packed)
         rstats = {
             **graph.stats,  # kept with the radiance, so that a reused cache needs no graph read
             "lighting_s": round(t_light, 3),
@@ -225,13 +214,14 @@ def precompute(
             "transport_iterations": iterations,
         }
     if found is None:
-        store.save_radiance(rkey, radiance_file, rstats)
+        store.save_radiance(rkey, radiance_file(packed, rstats))
     if found_field is not None:
         field_data, fstats = found_field, {}
     else:
         progress("field", 0.95)
         field, fstats = bake_field(
             builder,
+            field_points(),
             graph,
             radiance_gather,
             scene.medium.albedo_rgb(),

@@ -1,11 +1,20 @@
-"""One entry point to render a scene spec with either integrator, shared by CLI and worker."""
+"""Rendering a scene spec with either integrator, shared by the CLI, the worker and the bench:
+Mitsuba's volpath (:func:`render_volpath`, the reference) or the graph radiance cache
+(:class:`GraphRenderer`, :func:`render_graph`).
+"""
 
 from __future__ import annotations
 
+import mitsuba as mi
 import numpy as np
 
 from .errors import SceneError
+from .mitsuba_scene import load_mitsuba_scene, sensor_dict, volpath_dict
+from .options import ESTIMATORS
+from .precompute import precompute
 from .scene import Scene
+from .spatial import NodeGrid
+from .tracing import DensityField
 from .volume import Volume, load_volume
 
 
@@ -18,9 +27,71 @@ def scene_volume(scene: Scene) -> Volume:
 
 def render_volpath(scene: Scene, volume: Volume, rr: bool = False) -> np.ndarray:
     """Mitsuba's volpath on the scene: (H, W, 3) float32 linear radiance. RR off by default."""
-    import mitsuba as mi
-
-    from .mitsuba_scene import load_mitsuba_scene, volpath_dict
-
     mscene = load_mitsuba_scene(scene, volume, volpath_dict(scene.render.max_depth, rr=rr))
     return np.array(mi.render(mscene, seed=scene.render.seed), dtype=np.float32)
+
+
+class GraphRenderer:
+    """A radiance cache loaded for rendering: any camera, any estimator, kernels reused.
+
+    One integrator is made per estimator when first asked for (the ``field`` estimator needs no
+    node grid, the others no field), and one Mitsuba scene per (image size, estimator); a new
+    camera only updates the sensor's parameters, which Mitsuba passes to the kernels as opaque
+    values.
+    """
+
+    def __init__(self, cache, volume, scene, estimator: str = "gather", step: float | None = None):
+        self.cache, self.volume, self.estimator, self.step = cache, volume, estimator, step
+        self.medium = DensityField.from_volume(volume, scene.medium.density_scale)
+        self.light = (scene.medium.albedo_rgb(), scene.light.unit_direction(), scene.light.irradiance_rgb())
+        self._integrators: dict = {}
+        self._scenes: dict[tuple, tuple] = {}
+
+    def integrator(self, estimator: str):
+        """The integrator of one estimator, made (and its node grid or field uploaded) once."""
+        if estimator not in ESTIMATORS:
+            raise ValueError(f"unknown estimator {estimator!r}; choose one of {', '.join(ESTIMATORS)}")
+        if estimator not in self._integrators:
+            # The plugin subclasses a variant's class, so it is imported once a variant is set
+            # (entry points set it after importing this module)
+            from .integrators.graph import FieldTextures, GraphIntegrator
+
+            grid = field = None
+            if estimator == "field":
+                field = FieldTextures.from_field(self.cache.field)
+            else:
+                positions, search_radius = self.cache.nodes  # the counts stay on disk
+                radiance = self.cache.radiance_gather if estimator == "gather" else self.cache.radiance
+                grid = NodeGrid.build(positions, search_radius, radiance)
+            integrator = GraphIntegrator(mi.Properties())
+            integrator.set_cache(
+                self.medium, *self.light, estimator, grid, field, self.cache.stats["radius"], self.step
+            )
+            self._integrators[estimator] = integrator
+        return self._integrators[estimator]
+
+    def render(self, camera, spp: int, seed: int = 0, estimator: str | None = None) -> np.ndarray:
+        """(H, W, 3) float32 linear radiance for a :class:`~cloudgraph.scene.CameraSpec`."""
+        estimator = estimator or self.estimator
+        sensor = sensor_dict(camera, self.volume, spp, seed)
+        key = (camera.width, camera.height, estimator)
+        if key not in self._scenes:
+            integrator = self.integrator(estimator)
+            mscene = mi.load_dict({"type": "scene", "integrator": integrator, "sensor": sensor})
+            self._scenes[key] = (mscene, mi.traverse(mscene))
+        mscene, params = self._scenes[key]
+        params["sensor.to_world"] = sensor["to_world"]
+        params["sensor.x_fov"] = sensor["fov"]
+        # near_clip and far_clip are plain floats that Mitsuba compiles into the kernel: they stay
+        # as the first camera set them (this integrator clips rays to the medium box itself).
+        params.update()
+        return np.array(mi.render(mscene, spp=spp, seed=seed), dtype=np.float32)
+
+
+def render_graph(
+    scene, volume, quality: str = "default", store=None, estimator: str = "gather", progress=None
+) -> np.ndarray:
+    """Renders a scene spec from its radiance cache, building the cache first if it is missing."""
+    cache = precompute(scene, volume, quality, store, progress)
+    renderer = GraphRenderer(cache, volume, scene, estimator)
+    return renderer.render(scene.camera, scene.render.spp, scene.render.seed)

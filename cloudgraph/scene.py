@@ -1,6 +1,6 @@
 """Scene spec v1: the one JSON contract shared by the CLI, the HTTP API and the worker.
 
-See DESIGN.md, "Scene spec v1". Units: world units for lengths, degrees for ``fov``,
+See docs/method.md, "Scene spec v1". Units: world units for lengths, degrees for ``fov``,
 ``density_scale`` multiplies grid values into sigma_t per world unit.
 """
 

@@ -16,7 +16,8 @@ from typing import BinaryIO
 
 from .errors import VolumeError
 from .files import atomic_writer
-from .volume import VDB_MAGIC, volume_info
+from .vdb import VDB_MAGIC
+from .volume import volume_info
 
 CHUNK = 1 << 20
 

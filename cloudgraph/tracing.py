@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+from scipy.ndimage import maximum_filter
 
 from .volume import Volume
 
@@ -33,8 +34,6 @@ def linear_texture(values: np.ndarray):
 def block_majorant(grid: np.ndarray, block: int = BLOCK) -> np.ndarray:
     """(bz, by, bx) max of a (nz, ny, nx) grid over blocks of block^3 voxels, dilated by one voxel
     first, so that trilinear interpolation anywhere inside a block never exceeds it."""
-    from scipy.ndimage import maximum_filter
-
     dilated = maximum_filter(grid, size=3, mode="nearest")
     d = np.pad(dilated, [(0, -s % block) for s in dilated.shape], mode="edge")
     bz, by, bx = (s // block for s in d.shape)

@@ -1,6 +1,6 @@
 """Radiance transport through the graph (thesis §4.5, Algorithm 1).
 
-L' = sum_{i < k} T^i L_d with T = C . diag(albedo) (DESIGN.md). With k = max_depth the series is
+L' = sum_{i < k} T^i L_d with T = C . diag(albedo) (docs/method.md). With k = max_depth the series is
 summed by iterated sparse matrix-vector products (Algorithm 1). With unbounded depth (-1) the
 series is the solution of the linear system
 

@@ -1,6 +1,6 @@
-"""Volumes: OpenVDB (.vdb), Mitsuba (.vol) and procedural test volumes, placed in world space.
+"""Volumes: OpenVDB (.vdb) and Mitsuba (.vol) files, placed in world space.
 
-Placement (DESIGN.md, "Scene spec v1"): world = volume.scale * (grid's index-to-world map).
+Placement (docs/method.md, "Scene spec v1"): world = volume.scale * (grid's index-to-world map).
 Voxel (i, j, k) holds its value at index point (i, j, k); values are interpolated trilinearly
 between voxel centres; the medium fills the active-voxel bounding box grown by half a voxel on
 every side. A :class:`Volume` keeps that box densely, as a float32 array indexed [i, j, k].
@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from .errors import VolumeError
+from .vdb import VDB_MAGIC, pick_grid, value_type, vdb_grid_table
 
-VDB_MAGIC = 0x56444220
 #: Refuse to densify a bounding box with more voxels than this (float32: 4 bytes each).
 DEFAULT_MAX_VOXELS = 256 * 1024 * 1024
 
@@ -107,94 +107,13 @@ def load_volume(path: str | Path, grid: str | None = None, scale: float = 1.0) -
     return vol.scaled(scale)
 
 
-def vdb_grid_table(path: str | Path) -> list[tuple[str, str]]:
-    """(name, tree type) of every grid in a .vdb file, read from its header alone.
-
-    This works where the Python bindings refuse a whole file because one grid has a type
-    they were not built with (Debian's bindings have no double grids).
-    """
-    with open(path, "rb") as f:
-        data = f.read(1 << 20)
-    pos = 8
-
-    def u32() -> int:
-        nonlocal pos
-        (v,) = struct.unpack_from("<I", data, pos)
-        pos += 4
-        return v
-
-    def string() -> str:
-        nonlocal pos
-        n = u32()
-        s = data[pos : pos + n].decode("utf-8", "replace")
-        pos += n
-        return s
-
-    try:
-        version = u32()
-        if version >= 211:
-            pos += 8  # library major, minor
-        has_offsets = True
-        if version >= 212:
-            has_offsets = bool(data[pos])
-            pos += 1
-        if version < 222:
-            pos += 4  # file-level compression flags
-        pos += 36  # UUID
-        for _ in range(u32()):  # file metadata: name, type, sized value
-            string()
-            string()
-            size = u32()
-            pos += size
-        if not has_offsets:
-            return []
-        grids = []
-        for _ in range(u32()):
-            name, tree_type = string(), string()
-            if version >= 216:
-                string()  # instance parent (grid instancing, file version 216)
-            _, _, end = struct.unpack_from("<qqq", data, pos)
-            grids.append((name, tree_type.removesuffix("_HalfFloat")))
-            with open(path, "rb") as f:  # descriptors sit between grids: jump to the next one
-                f.seek(end)
-                data = f.read(1 << 16)
-            pos = 0
-        return grids
-    except (struct.error, IndexError, ValueError, OSError):
-        return []
-
-
-def value_type(tree_type: str) -> str:
-    parts = tree_type.split("_")
-    return parts[1] if len(parts) > 2 and parts[0] == "Tree" else tree_type
-
-
-def _pick_grid(path: Path, grids: list[tuple[str, str]], grid: str | None) -> tuple[str, str]:
-    """Chooses the named grid, else 'density', else the only float grid."""
-    listing = ", ".join(f"{n!r} ({value_type(t)})" for n, t in grids) or "none"
-    by_name = dict(grids)
-    if grid is not None:
-        if grid not in by_name:
-            raise VolumeError(f"{path} has no grid named {grid!r}; its grids: {listing}")
-        return grid, by_name[grid]
-    if "density" in by_name:
-        return "density", by_name["density"]
-    floats = [(n, t) for n, t in grids if value_type(t) in ("float", "half", "double")]
-    if len(floats) == 1:
-        return floats[0]
-    raise VolumeError(
-        f"{path} has no grid named 'density' and {len(floats)} scalar grids; "
-        f"name one with volume.grid (its grids: {listing})"
-    )
-
-
 def _load_vdb(path: Path, grid: str | None) -> Volume:
     import pyopenvdb as vdb
 
     table = vdb_grid_table(path)
     if not table:
         raise VolumeError(f"cannot read {path}: the OpenVDB file is truncated or corrupt")
-    name, tree_type = _pick_grid(path, table, grid)
+    name, tree_type = pick_grid(path, table, grid)
     kind = value_type(tree_type)
     if kind not in ("float", "half", "double"):
         raise VolumeError(f"grid {name!r} in {path} holds {kind} values; density needs a scalar float grid")
@@ -321,79 +240,6 @@ def write_vdb(volume: Volume, path: str | Path, half: bool = False) -> None:
     g.gridClass = vdb.GridClass.FOG_VOLUME
     g.saveFloatAsHalf = half
     vdb.write(str(path), grids=[g])
-
-
-# --------------------------------------------------------------- procedural volumes
-
-
-def sphere_volume(n: int = 32, density: float = 1.0, voxel_size: float = 1.0, soft: float = 0.0) -> Volume:
-    """A fog sphere filling an n^3 grid centred on the origin, radius n/2 - 1 voxels.
-
-    ``soft`` > 0 fades the edge over that many voxels; 0 gives a hard, homogeneous ball.
-    """
-    c = (n - 1) / 2.0
-    i = np.arange(n) - c
-    r = np.sqrt(i[:, None, None] ** 2 + i[None, :, None] ** 2 + i[None, None, :] ** 2)
-    radius = n / 2.0 - 1.0
-    if soft > 0:
-        d = np.clip((radius - r) / soft, 0.0, 1.0)
-    else:
-        d = (r <= radius).astype(np.float32)
-    m = np.diag([voxel_size] * 3 + [1.0])
-    m[:3, 3] = -c * voxel_size
-    return Volume((density * d).astype(np.float32), (0, 0, 0), m, "density")
-
-
-def box_volume(
-    dims: tuple[int, int, int],
-    density: float = 1.0,
-    index_min=(0, 0, 0),
-    index_to_world: np.ndarray | None = None,
-) -> Volume:
-    """A homogeneous block of voxels (a slab or a cube) with any affine placement."""
-    m = np.eye(4) if index_to_world is None else np.asarray(index_to_world, float)
-    return Volume(np.full(dims, density, np.float32), tuple(int(i) for i in index_min), m, "density")
-
-
-def noise_volume(n: int = 64, seed: int = 7, density: float = 1.0, voxel_size: float = 1.0) -> Volume:
-    """A fixed-seed cloud: fractal value noise (4 octaves) shaped by a soft ellipsoid, in [0, density]."""
-    rng = np.random.default_rng(seed)
-    x = np.linspace(0.0, 1.0, n, dtype=np.float32)
-    field = np.zeros((n, n, n), np.float32)
-    amp, total = 1.0, 0.0
-    for octave in range(4):  # a loop over octaves, not voxels
-        cells = 4 * 2**octave
-        lattice = rng.random((cells + 1,) * 3, dtype=np.float32)
-        field += amp * _trilinear_upsample(lattice, x * cells)
-        total += amp
-        amp *= 0.5
-    field /= total
-    c = x[:, None, None] - 0.5, x[None, :, None] - 0.5, x[None, None, :] - 0.5
-    r = np.sqrt((c[0] / 0.42) ** 2 + (c[1] / 0.32) ** 2 + (c[2] / 0.42) ** 2)
-    shape = np.clip(1.0 - r, 0.0, 1.0)
-    d = np.clip((field * 1.6 - 0.55) + shape * 0.9 - 0.35, 0.0, None) * (r < 1.0)
-    d /= d.max()
-    m = np.diag([voxel_size] * 3 + [1.0])
-    m[:3, 3] = -(n - 1) / 2.0 * voxel_size
-    return Volume((density * d).astype(np.float32), (0, 0, 0), m, "density")
-
-
-def _trilinear_upsample(lattice: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Samples a lattice at t (lattice units, along each axis) with smoothstep interpolation."""
-    i0 = np.minimum(np.floor(t).astype(int), lattice.shape[0] - 2)
-    f = t - i0
-    f = f * f * (3 - 2 * f)
-    out = 0.0
-    for dx in (0, 1):
-        for dy in (0, 1):
-            for dz in (0, 1):
-                w = (
-                    (f if dx else 1 - f)[:, None, None]
-                    * (f if dy else 1 - f)[None, :, None]
-                    * (f if dz else 1 - f)[None, None, :]
-                )
-                out = out + w * lattice[np.ix_(i0 + dx, i0 + dy, i0 + dz)]
-    return out.astype(np.float32)
 
 
 def volume_info(path: str | Path) -> dict:

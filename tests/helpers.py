@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from cloudgraph.procedural import box_volume
 from cloudgraph.render import render_volpath
 from cloudgraph.scene import parse_scene
-from cloudgraph.volume import box_volume
 
 
 def pixel_rays(eye, target, up, fov_deg: float, width: int, height: int):
@@ -95,7 +95,7 @@ def reference(scene, volume, spp: int = 512) -> np.ndarray:
 
 
 def render_march(cache, volume, scene, spp: int = 16) -> np.ndarray:
-    from cloudgraph.integrators.graph import GraphRenderer
+    from cloudgraph.render import GraphRenderer
 
     renderer = GraphRenderer(cache, volume, scene, estimator="march")
     return renderer.render(scene.camera, spp).astype(np.float64)

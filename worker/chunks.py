@@ -1,5 +1,5 @@
-"""One precompute over many workers (README, "Scale"): the graph build's chunks
-(:meth:`cloudgraph.graph.GraphBuilder.chunk`) shared through Redis.
+"""One precompute over many workers (docs/service.md, "One precompute over many workers"): the
+graph build's chunks (:func:`cloudgraph.stages.run_chunk`) shared through Redis.
 
 The worker that runs a precompute job coordinates it (:class:`SharedChunks`). For each stage of
 the build it writes the stage's inputs to a run folder on the shared cache volume, pushes one
@@ -20,9 +20,9 @@ Keys, under ``cloudgraph:run:<run>:``:
 | stage:<gen>   | JSON {stage, inputs} of the gen-th stage put out (inputs in               |
 |               | ``<dir>/<gen>-<name>.npy``); several can be out at once                   |
 | todo          | tasks ``<gen>:<chunk>`` not yet claimed, oldest stage first               |
-| later         | the same, of stages needed late (GraphBuilder.late_stages), newest stage  |
+| later         | the same, of stages needed late (stages.LATE_STAGES), newest stage  |
 |               | first (it is wanted soonest) but those wanted only at the end last        |
-|               | (GraphBuilder.last_stages): claimed when todo is empty, so that they fill |
+|               | (stages.LAST_STAGES): claimed when todo is empty, so that they fill |
 |               | the gaps the other stages leave                                           |
 | lease:<task>  | the holder of a claimed task; expires LEASE_S after its last renewal      |
 | done:<gen>    | tasks of that stage finished by helpers (``<dir>/<gen>-<chunk>.npz``)     |
@@ -42,6 +42,9 @@ from pathlib import Path
 
 import numpy as np
 from redis import Redis
+
+from cloudgraph import stages
+from cloudgraph.files import atomic_writer
 
 log = logging.getLogger("cloudgraph.chunks")
 
@@ -155,12 +158,16 @@ class _Run:
 
 
 def _write(path: Path, save, *args, **kwargs) -> None:
-    """``save(file, *args, **kwargs)`` under a temporary name, then renamed: whole when its task
-    is announced. Not synced to disk: a run's files live only as long as the run."""
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as f:
+    """``save(file, *args, **kwargs)`` written atomically (cloudgraph.files): whole when its task
+    is announced. Not synced to disk: a run's files live only as long as the run.
+
+    Raises:
+        FileNotFoundError: the run's folder is gone (the run ended); it is not made again.
+    """
+    if not path.parent.is_dir():
+        raise FileNotFoundError(f"the run folder of {path.name} is gone")
+    with atomic_writer(path, sync=False) as f:
         save(f, *args, **kwargs)
-    os.replace(tmp, path)
 
 
 def _linked(source: Path, path: Path) -> bool:
@@ -252,7 +259,7 @@ class SharedChunks:
         stages may be out at a time: the caller can do work of its own before it iterates."""
         r, gen = self.r, self.gen + 1
         self.gen = gen
-        n = builder.n_chunks(stage, inputs)
+        n = stages.n_chunks(builder, stage, inputs)
         names = sorted(inputs or {})
         for name in names:
             # An array already written for an earlier stage (the field's points, the node
@@ -266,7 +273,7 @@ class SharedChunks:
         self.pending[gen], self.ready[gen] = set(range(n)), []
         r.redis.set(r.key(f"stage:{gen}"), json.dumps({"stage": stage, "inputs": names}))
         if n:
-            r.put(gen, n, stage in builder.late_stages, stage in builder.last_stages)
+            r.put(gen, n, stage in stages.LATE_STAGES, stage in stages.LAST_STAGES)
         if self.helpers is None:  # the first stage: helpers are asked for once the spec is whole
             self.spec["params"] = builder.params.to_dict()
             self._set_spec()
@@ -289,13 +296,13 @@ class SharedChunks:
             # another late stage's chunk (the graph file's, 1 s on blender) would hold up this
             # one's results while the helpers have nothing to do
             task = r.claim(self.holder, late=False)
-            if task is None and self.stages[gen][0] in builder.late_stages:
+            if task is None and self.stages[gen][0] in stages.LATE_STAGES:
                 task = r.claim_late(self.holder, [f"{gen}:{i}" for i in sorted(pending)])
             if task is not None:
                 g, i = (int(x) for x in task.split(":"))
                 stage, inputs = self.stages[g]
                 with r.leased(task, self.holder):
-                    result = builder.chunk(stage, i, inputs)
+                    result = stages.run_chunk(builder, stage, i, inputs)
                 self.here[stage] = self.here.get(stage, 0) + 1
                 if i in self.pending[g]:
                     self.pending[g].discard(i)
@@ -330,7 +337,7 @@ class SharedChunks:
 def help_run(redis: Redis, run: str, make_builder, lease_s: float = LEASE_S) -> int:
     """A helper's loop: takes the run's tasks until the run ends; returns the chunks it ran.
 
-    ``make_builder(spec)`` makes the :class:`~cloudgraph.graph.GraphBuilder` of a run's spec
+    ``make_builder(spec)`` makes the :class:`~cloudgraph.build.GraphBuilder` of a run's spec
     (``scene``, ``quality``, ``params``: the coordinator's build parameters; ``graph``: whether
     the run builds a graph).
     """
@@ -354,7 +361,7 @@ def help_run(redis: Redis, run: str, make_builder, lease_s: float = LEASE_S) -> 
         folder = Path(spec["dir"])
         t0 = time.perf_counter()
         with r.leased(task, holder):
-            result = builder.chunk(stage["stage"], i, _inputs(folder, gen, stage["inputs"]))
+            result = stages.run_chunk(builder, stage["stage"], i, _inputs(folder, gen, stage["inputs"]))
             try:
                 _write(folder / f"{gen}-{i}.npz", np.savez, **{f"a{k}": a for k, a in enumerate(result)})
             except FileNotFoundError:  # the run ended (its folder went) while this chunk ran

@@ -44,6 +44,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..options import ESTIMATORS
+from ..spatial import NodeGrid
 from ..tracing import (
     BLOCK,
     DensityField,
@@ -52,109 +53,11 @@ from ..tracing import (
     ratio_tracking,
     sample_collision,
     step_length,
-    to_jit,
     uniform_sphere,
 )
 
 #: The field march stops where the transmittance from the camera falls below this.
 FIELD_TR_MIN = 1e-3
-
-
-# ------------------------------------------------------------------ spatial index
-
-
-def node_bins(positions: np.ndarray, search_radius: np.ndarray, max_cells: int = 1 << 22) -> tuple:
-    """N nodes ((N, 3) positions, (N,) ranges) binned into a uniform grid, in numpy: (cell_start
-    (cells + 1,), entries (node ids by cell), (origin x y z, cell side, dims x y z))."""
-    lo = (positions - search_radius[:, None]).min(axis=0)
-    hi = (positions + search_radius[:, None]).max(axis=0)
-    cell = float(np.median(search_radius))
-    while np.prod(np.ceil((hi - lo) / cell) + 1) > max_cells:
-        cell *= 1.25
-    dims = (np.floor((hi - lo) / cell) + 1).astype(np.int64)
-    # int32 throughout (cells < 2^22, entries < 2^31): half the memory traffic of int64
-    c0 = np.clip(np.floor((positions - search_radius[:, None] - lo) / cell), 0, dims - 1).astype(np.int32)
-    c1 = np.clip(np.floor((positions + search_radius[:, None] - lo) / cell), 0, dims - 1).astype(np.int32)
-    span = c1 - c0 + 1
-    per_node = span.prod(axis=1)
-    node = np.repeat(np.arange(len(positions), dtype=np.int32), per_node)
-    first = np.cumsum(per_node, dtype=np.int32) - per_node
-    k = np.arange(per_node.sum(), dtype=np.int32) - np.repeat(first, per_node)
-    sx, sy = span[node, 0], span[node, 1]
-    ix = c0[node, 0] + k % sx
-    iy = c0[node, 1] + (k // sx) % sy
-    iz = c0[node, 2] + k // (sx * sy)
-    cell_id = ix + np.int32(dims[0]) * (iy + np.int32(dims[1]) * iz)
-    order = np.argsort(cell_id, kind="stable")
-    n_cells = int(dims.prod())
-    start = np.zeros(n_cells + 1, np.int64)
-    np.cumsum(np.bincount(cell_id, minlength=n_cells), out=start[1:])
-    return (
-        start.astype(np.uint32),
-        node[order].astype(np.uint32),
-        np.concatenate([lo, [cell], dims]).astype(float),
-    )
-
-
-@dataclass
-class NodeGrid:
-    """Nodes binned into a uniform grid: cell c lists the nodes whose search ball meets it.
-
-    Attributes (Dr.Jit arrays):
-        positions, radius2, radiance: per node; radius2 is R_a^2.
-        cell_start: (cells + 1,) offsets into ``entries``; entries: node ids.
-        origin, cell, dims: the grid (scalars).
-    """
-
-    positions: object
-    radius2: object
-    radiance: object
-    cell_start: object
-    entries: object
-    origin: tuple
-    cell: float
-    dims: tuple
-
-    @classmethod
-    def build(
-        cls, positions: np.ndarray, search_radius: np.ndarray, radiance: np.ndarray, bins=None
-    ) -> NodeGrid:
-        """N nodes ((N, 3) positions, (N,) ranges, (N, 3) radiance) binned (:func:`node_bins`,
-        unless given), then uploaded."""
-        start, entries, grid = bins if bins is not None else node_bins(positions, search_radius)
-        return cls(
-            positions=to_jit(mi.Point3f, positions),
-            radius2=to_jit(mi.Float, search_radius.astype(np.float32) ** 2),
-            radiance=to_jit(mi.Color3f, radiance),
-            cell_start=to_jit(mi.UInt32, start, np.uint32),
-            entries=to_jit(mi.UInt32, entries, np.uint32),
-            origin=tuple(float(v) for v in grid[:3]),
-            cell=float(grid[3]),
-            dims=tuple(int(v) for v in grid[4:]),
-        )
-
-    @dr.syntax
-    def lookup(self, p: mi.Point3f, eps2: float, active: mi.Bool) -> mi.Color3f:
-        """L'_search(p): inverse-squared-distance weighted mean over nodes in range (Eq. 4.25)."""
-        g = (p - mi.Point3f(*self.origin)) / self.cell
-        inside = active & dr.all((g >= 0) & (g < mi.Point3f(*self.dims)))
-        gi = mi.Vector3u(dr.clip(mi.Vector3i(g), 0, mi.Vector3i(*self.dims) - 1))
-        c = gi.x + self.dims[0] * (gi.y + self.dims[1] * gi.z)
-        i = dr.gather(mi.UInt32, self.cell_start, c, inside)
-        end = dr.gather(mi.UInt32, self.cell_start, c + 1, inside)
-        L = mi.Color3f(0.0)  # Weighted radiance sum
-        W = mi.Float(0.0)  # Weight sum
-        loop = inside & (i < end)  # an empty cell has nothing to read
-        while dr.hint(loop, label="node_gather"):
-            a = dr.gather(mi.UInt32, self.entries, i, loop)
-            d2 = dr.squared_norm(p - dr.gather(mi.Point3f, self.positions, a, loop))
-            near = loop & (d2 < dr.gather(mi.Float, self.radius2, a, loop))
-            w = dr.rcp(dr.maximum(d2, eps2))  # Eq. 4.25: inverse squared distance
-            W[near] += w
-            L[near] += w * dr.gather(mi.Color3f, self.radiance, a, near)
-            i += 1
-            loop &= i < end
-        return dr.select(W > 0, L / W, 0.0)
 
 
 @dataclass
@@ -322,75 +225,6 @@ class GraphIntegrator(mi.SamplingIntegrator):
 
     def to_string(self):
         return f"GraphIntegrator[estimator={self.estimator}]"
-
-
-# ------------------------------------------------------------------ rendering
-
-
-class GraphRenderer:
-    """A radiance cache loaded for rendering: any camera, any estimator, kernels reused.
-
-    One integrator is made per estimator when first asked for (the ``field`` estimator needs no
-    node grid, the others no field), and one Mitsuba scene per (image size, estimator); a new
-    camera only updates the sensor's parameters, which Mitsuba passes to the kernels as opaque
-    values.
-    """
-
-    def __init__(self, cache, volume, scene, estimator: str = "gather", step: float | None = None):
-        self.cache, self.volume, self.estimator, self.step = cache, volume, estimator, step
-        self.medium = DensityField.from_volume(volume, scene.medium.density_scale)
-        self.light = (scene.medium.albedo_rgb(), scene.light.unit_direction(), scene.light.irradiance_rgb())
-        self._integrators: dict[str, GraphIntegrator] = {}
-        self._scenes: dict[tuple, tuple] = {}
-
-    def integrator(self, estimator: str) -> GraphIntegrator:
-        """The integrator of one estimator, made (and its node grid or field uploaded) once."""
-        if estimator not in ESTIMATORS:
-            raise ValueError(f"unknown estimator {estimator!r}; choose one of {', '.join(ESTIMATORS)}")
-        if estimator not in self._integrators:
-            grid = field = None
-            if estimator == "field":
-                field = FieldTextures.from_field(self.cache.field)
-            else:
-                positions, search_radius = self.cache.nodes  # the counts stay on disk
-                radiance = self.cache.radiance_gather if estimator == "gather" else self.cache.radiance
-                grid = NodeGrid.build(positions, search_radius, radiance)
-            integrator = GraphIntegrator(mi.Properties())
-            integrator.set_cache(
-                self.medium, *self.light, estimator, grid, field, self.cache.stats["radius"], self.step
-            )
-            self._integrators[estimator] = integrator
-        return self._integrators[estimator]
-
-    def render(self, camera, spp: int, seed: int = 0, estimator: str | None = None) -> np.ndarray:
-        """(H, W, 3) float32 linear radiance for a :class:`~cloudgraph.scene.CameraSpec`."""
-        from ..mitsuba_scene import sensor_dict
-
-        estimator = estimator or self.estimator
-        sensor = sensor_dict(camera, self.volume, spp, seed)
-        key = (camera.width, camera.height, estimator)
-        if key not in self._scenes:
-            integrator = self.integrator(estimator)
-            mscene = mi.load_dict({"type": "scene", "integrator": integrator, "sensor": sensor})
-            self._scenes[key] = (mscene, mi.traverse(mscene))
-        mscene, params = self._scenes[key]
-        params["sensor.to_world"] = sensor["to_world"]
-        params["sensor.x_fov"] = sensor["fov"]
-        # near_clip and far_clip are plain floats that Mitsuba compiles into the kernel: they stay
-        # as the first camera set them (this integrator clips rays to the medium box itself).
-        params.update()
-        return np.array(mi.render(mscene, spp=spp, seed=seed), dtype=np.float32)
-
-
-def render_graph(
-    scene, volume, quality: str = "default", store=None, estimator: str = "gather", progress=None
-) -> np.ndarray:
-    """Renders a scene spec from its radiance cache, building the cache first if it is missing."""
-    from ..precompute import precompute
-
-    cache = precompute(scene, volume, quality, store, progress)
-    renderer = GraphRenderer(cache, volume, scene, estimator)
-    return renderer.render(scene.camera, scene.render.spp, scene.render.seed)
 
 
 mi.register_integrator("graph", lambda props: GraphIntegrator(props))

@@ -4,7 +4,7 @@ import pytest
 
 from cloudgraph.cache import CacheStore
 from cloudgraph.precompute import precompute
-from cloudgraph.volume import noise_volume, sphere_volume
+from cloudgraph.procedural import noise_volume, sphere_volume
 
 from ..helpers import medium_scene
 

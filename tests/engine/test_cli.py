@@ -9,8 +9,10 @@ import numpy as np
 import pytest
 
 from cloudgraph.cache import CacheStore, graph_key, volume_id
-from cloudgraph.graph import build_params
-from cloudgraph.volume import load_volume, sphere_volume, write_vdb
+from cloudgraph.graph_file import read_graph
+from cloudgraph.params import build_params
+from cloudgraph.procedural import sphere_volume
+from cloudgraph.volume import load_volume, write_vdb
 
 from ..helpers import LIGHT, cube_volume, framed_camera
 
@@ -126,7 +128,7 @@ def test_cli_precompute_prints_keys_and_sizes_and_render_uses_the_cache(variant,
         keys["volume_id"], 0.5, build_params(loaded, 0.5, "draft").to_dict()
     )
     # ... and the sizes those of the graph it stored under its key.
-    graph = CacheStore(cache_dir).load_graph(keys["graph_key"])
+    graph = read_graph(CacheStore(cache_dir).graph_path(keys["graph_key"]))
     assert (graph.n_nodes, graph.counts.nnz) == (int(sizes[1]), int(sizes[2]))
     assert graph.n_nodes > 100
 

@@ -11,8 +11,9 @@ import zlib
 import numpy as np
 import pytest
 
+import cloudgraph.precompute as precompute_module
 from cloudgraph.cache import CacheStore
-from cloudgraph.field import MAGIC, RadianceField
+from cloudgraph.field_file import MAGIC, RadianceField
 from cloudgraph.metrics import bias_metrics, binned
 from cloudgraph.precompute import precompute
 
@@ -20,7 +21,7 @@ from ..helpers import LIGHT, box_interval, cube_volume, medium_scene, pixel_rays
 
 
 def renderer(cache, volume, scene):
-    from cloudgraph.integrators.graph import GraphRenderer
+    from cloudgraph.render import GraphRenderer
 
     return GraphRenderer(cache, volume, scene)
 
@@ -120,7 +121,7 @@ def test_field_renders_are_deterministic_and_converged_at_one_sample(sphere):
 
 
 def test_a_new_light_relights_the_field_without_a_new_graph(variant, tmp_path):
-    from cloudgraph.volume import sphere_volume
+    from cloudgraph.procedural import sphere_volume
 
     volume = sphere_volume(16)
     store = CacheStore(tmp_path)
@@ -145,10 +146,10 @@ def test_a_field_render_of_a_cached_scene_never_reads_the_graph(sphere, monkeypa
     assert again.stats["radiance_reused"] and again.stats["field_reused"]
     assert again.stats["nodes"] == sphere["cache"].stats["nodes"]  # kept with the radiance
 
-    def no_graph(key):
+    def no_graph(path):
         raise AssertionError("the graph was read")
 
-    monkeypatch.setattr(store, "load_graph", no_graph)
+    monkeypatch.setattr(precompute_module, "read_graph", no_graph)
     image = renderer(again, sphere["volume"], sphere["scene"]).render(sphere["scene"].camera, 1, 0, "field")
     assert image.mean() > 0
 
@@ -200,7 +201,7 @@ def test_arrays_packed_ahead_make_the_same_file():
     """A bake packs the arrays it has while its last chunks run (RadianceField.packed): the file
     is the same bytes as one packed at the end, one standard gzip member that decodes to the
     arrays."""
-    from cloudgraph.field import _pack
+    from cloudgraph.field_file import pack_array
 
     rng = np.random.default_rng(3)
     arrays = {
@@ -211,7 +212,7 @@ def test_arrays_packed_ahead_make_the_same_file():
     }
     meta = {"step": 0.5, "albedo": [1.0, 1.0, 1.0]}
     data = RadianceField(**arrays, meta=meta).encode()
-    early = {name: _pack(name, arrays[name]) for name in ("sigma_t", "tau_light", "majorant")}
+    early = {name: pack_array(name, arrays[name]) for name in ("sigma_t", "tau_light", "majorant")}
     assert RadianceField(**arrays, meta=meta, packed=early).encode() == data
     assert zlib.decompress(data, wbits=31)[:8] == MAGIC  # whole member: CRC and length checked
     decoded = RadianceField.decode(data)

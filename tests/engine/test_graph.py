@@ -14,10 +14,13 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+import cloudgraph.precompute as precompute_module
 from cloudgraph.cache import CacheStore
+from cloudgraph.graph_file import read_graph
 from cloudgraph.metrics import bias_metrics
 from cloudgraph.precompute import precompute
-from cloudgraph.volume import Volume, sphere_volume
+from cloudgraph.procedural import sphere_volume
+from cloudgraph.volume import Volume
 
 from ..helpers import LIGHT, medium_scene, reference, render_march
 
@@ -117,14 +120,14 @@ def test_energy_balance_of_a_sphere_at_albedo_1_side_and_back_lit(variant, tmp_p
     side = np.cross(light, [0.0, 0.0, 1.0])
     eye = {"side": side / np.linalg.norm(side), "back": light}[view]
     scene = medium_scene(volume, density_scale=6.0 / 11.0, albedo=1.0, eye_dir=tuple(eye), size=32)
-    from cloudgraph.integrators.graph import GraphRenderer
+    from cloudgraph.render import GraphRenderer
 
     cache = precompute(scene, volume, "draft", CacheStore(tmp_path))
     image = GraphRenderer(cache, volume, scene).render(scene.camera, 256, 3, "gather")
     m = bias_metrics(image, reference(scene, volume, spp=1024))
     # Measured: mean ratio 0.999 side-lit, 1.008 back-lit; 4x4-binned relMAE 2.4 % and 4.7 % (the
     # back-lit reference's own noise is most of it). With the disk mean of the direct light
-    # (the cause of the bias, README "Accuracy"): 1.064 / 6.6 % and 1.165 / 16.6 %.
+    # (the cause of the bias, docs/measurements.md "Accuracy"): 1.064 / 6.6 % and 1.165 / 16.6 %.
     assert abs(m["mean_ratio"] - 1.0) < 0.04
     assert m["binned_relMAE"] < 0.08
 
@@ -137,8 +140,8 @@ def two_density_box():
 
 
 def test_nodes_grow_with_the_free_path_where_the_medium_is_thin(variant, tmp_path):
-    from cloudgraph.graph import build_params
     from cloudgraph.nodes import NodeCells
+    from cloudgraph.params import build_params
 
     volume = two_density_box()
     params = build_params(volume, 1.0, "default", max_level=3)
@@ -161,7 +164,7 @@ def test_nodes_grow_with_the_free_path_where_the_medium_is_thin(variant, tmp_pat
     # Fewer nodes in the thin half, the same image: gather against volpath, side-lit
     store = CacheStore(tmp_path)
     scene = medium_scene(volume, density_scale=1.0, albedo=0.9, eye_dir=(0.0, 0.0, 1.0), size=32)
-    from cloudgraph.integrators.graph import GraphRenderer
+    from cloudgraph.render import GraphRenderer
 
     ref = reference(scene, volume, spp=1024)
     nodes, ratios = [], []
@@ -182,8 +185,8 @@ def test_compact_keeps_a_quarter_of_the_nodes_where_the_medium_is_dense():
     # presets sit at their lower clamp (0.6 and 1 voxel), so compact's cells (cubes of side
     # 2r / sqrt(3)) hold (1 / 0.6)^3 = 4.6 times the volume. A lattice of points finer than
     # either fills every cell that the box meets.
-    from cloudgraph.graph import build_params
     from cloudgraph.nodes import NodeCells
+    from cloudgraph.params import build_params
 
     volume = Volume(np.ones((40, 40, 40), np.float32), (0, 0, 0), np.eye(4))
     lo, hi = volume.world_bbox()
@@ -255,8 +258,11 @@ def test_changing_albedo_reuses_the_graph_and_recomputes_only_the_radiance(varia
     # again), solved with a direct sparse solver. The solver stops at 1e-5 of the total and the
     # file keeps 8 significant bits (0.4 %); measured: 0.21 % of the largest value, 0.38 % at most
     # relative.
-    from cloudgraph.graph import GraphBuilder, build_params, local_chunks, placed
+    from cloudgraph.build import GraphBuilder
+    from cloudgraph.chunks import placed
+    from cloudgraph.params import build_params
     from cloudgraph.precompute import lighting_inputs
+    from cloudgraph.stages import local_chunks
 
     scene, params = medium_scene(volume, 0.5, albedo=0.6), build_params(volume, 0.5, "draft")
     lit = local_chunks(
@@ -289,7 +295,7 @@ def test_a_fixed_seed_gives_identical_caches_in_separate_stores(variant, tmp_pat
     ]:
         assert x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes()
     # and what was written is what was built
-    stored = CacheStore(tmp_path / "b").load_graph(b.keys["graph_key"])
+    stored = read_graph(CacheStore(tmp_path / "b").graph_path(b.keys["graph_key"]))
     assert stored.positions.tobytes() == ga.positions.tobytes()
     assert (stored.counts != ga.counts).nnz == 0
     np.testing.assert_array_equal(stored.out_samples, ga.out_samples)
@@ -303,7 +309,8 @@ def test_a_fixed_seed_gives_identical_caches_in_separate_stores(variant, tmp_pat
 
 
 def test_the_graph_file_is_compact_and_exact_where_transport_needs_it(sphere, monkeypatch):
-    from cloudgraph.cache import (
+    from cloudgraph.build import GraphBuilder, build_graph
+    from cloudgraph.graph_file import (
         graph_file,
         pack_graph,
         pack_radiance,
@@ -311,8 +318,9 @@ def test_the_graph_file_is_compact_and_exact_where_transport_needs_it(sphere, mo
         unpack_graph,
         unpack_radiance,
     )
-    from cloudgraph.graph import GraphBuilder, build_graph, build_params
-    from cloudgraph.integrators.graph import GraphRenderer
+    from cloudgraph.params import build_params
+    from cloudgraph.render import GraphRenderer
+    from cloudgraph.stages import local_chunks, run_chunk
 
     cache, volume, scene = sphere["cache"], sphere["volume"], sphere["scene"]
     store, g = cache.store, cache.graph
@@ -321,7 +329,7 @@ def test_the_graph_file_is_compact_and_exact_where_transport_needs_it(sphere, mo
     assert store.graph_path(cache.keys["graph_key"]).stat().st_size < 2.0 * g.counts.nnz
     # Counts and samples exact; positions to half a step of 1/65535 of the nodes' box; search
     # ranges to float16 (2^-11)
-    built = build_graph(volume, sphere["sigma"], build_params(volume, sphere["sigma"], "draft"))
+    built = build_graph(volume, sphere["sigma"], build_params(volume, sphere["sigma"], "draft"), local_chunks)
     back = unpack_graph(pack_graph(built))
     assert (back.counts != built.counts).nnz == 0 and back.counts.nnz == built.counts.nnz > 10 * g.n_nodes
     np.testing.assert_array_equal(back.out_samples, built.out_samples)
@@ -334,7 +342,7 @@ def test_the_graph_file_is_compact_and_exact_where_transport_needs_it(sphere, mo
     np.testing.assert_array_equal(stored.search_radius, back.search_radius)
     # and a graph_file chunk, run on the graph's arrays, makes the file's bytes
     builder = GraphBuilder(volume, sphere["sigma"], build_params(volume, sphere["sigma"], "draft"))
-    (data,) = builder.chunk("graph_file", 0, built.to_arrays())
+    (data,) = run_chunk(builder, "graph_file", 0, built.to_arrays())
     assert data.tobytes() == graph_file(built)
     assert (unpack_graph(np.load(io.BytesIO(data.tobytes()))).counts != built.counts).nnz == 0
     # Radiance to 8 significant bits at any magnitude, and kept once where both arrays are one
@@ -348,10 +356,10 @@ def test_the_graph_file_is_compact_and_exact_where_transport_needs_it(sphere, mo
     again = precompute(scene, volume, "draft", store)
     assert again.stats["radiance_reused"] and again._graph is None
 
-    def no_graph(key):
+    def no_graph(path):
         raise AssertionError("the whole graph was read")
 
-    monkeypatch.setattr(store, "load_graph", no_graph)
+    monkeypatch.setattr(precompute_module, "read_graph", no_graph)
     image = GraphRenderer(again, volume, scene).render(scene.camera, 4, 0, "gather")
     expected = GraphRenderer(cache, volume, scene).render(scene.camera, 4, 0, "gather")
     assert image.mean() > 0
@@ -392,7 +400,7 @@ def kernels_compiled_by_the_second(first, second):
 
 @pytest.mark.parametrize("estimator", ["gather", "field"])
 def test_moving_the_camera_launches_only_kernels_already_compiled(sphere, estimator):
-    from cloudgraph.integrators.graph import GraphRenderer
+    from cloudgraph.render import GraphRenderer
 
     volume, scene = sphere["volume"], sphere["scene"]
     renderer = GraphRenderer(sphere["cache"], volume, scene, estimator=estimator)
@@ -410,12 +418,15 @@ def test_chunks_at_other_offsets_launch_only_kernels_already_compiled(variant, m
     # A chunk's offset and seeds are opaque to its kernels, and numpy inputs are copied to aligned
     # memory: as literals, or read where numpy put them, every chunk compiled its own kernel
     # (0.1 s each, about 7 s of a blender precompute on a fresh machine).
-    from cloudgraph.graph import GraphBuilder, build_params
+    from cloudgraph.build import GraphBuilder
+    from cloudgraph.field import FieldPoints
     from cloudgraph.lighting import LIGHTING_CHUNK
+    from cloudgraph.params import build_params
+    from cloudgraph.stages import n_chunks, run_chunk
 
     volume = sphere_volume(16)
     builder = GraphBuilder(volume, 0.5, build_params(volume, 0.5, "draft", n_paths=3 << 15))
-    points = builder.field_points.points
+    points = FieldPoints.of(volume, builder.field).points
     flights = {
         "cells": builder.cells.keys(points[:50].astype(np.float64)),
         "ends": np.arange(1, 51) * 5000,  # 250 000 flights: chunks of 31 250
@@ -432,7 +443,7 @@ def test_chunks_at_other_offsets_launch_only_kernels_already_compiled(variant, m
         "seed": np.array([5]),
     }
     import cloudgraph.field as field_module
-    from cloudgraph.integrators.graph import node_bins
+    from cloudgraph.spatial import node_bins
 
     monkeypatch.setitem(field_module._CHUNK, "field_lookup", 256)  # field points: 256 a chunk
     nodes, ranges = points[:300].astype(np.float32), np.full(300, 2.0, np.float32)
@@ -441,10 +452,11 @@ def test_chunks_at_other_offsets_launch_only_kernels_already_compiled(variant, m
     looked.update(start=start, entries=entries, grid=grid)
     stages = (("trace", None), ("flights", flights), ("lighting", lit), ("field_lookup", looked))
     for stage, inputs in stages:
-        assert builder.n_chunks(stage, inputs) >= 3, stage
-        builder.chunk(stage, 0, inputs)  # the first of a process may differ (inputs made lazily)
+        assert n_chunks(builder, stage, inputs) >= 3, stage
+        run_chunk(builder, stage, 0, inputs)  # the first of a process may differ (inputs made lazily)
         _, new = kernels_compiled_by_the_second(
-            lambda s=stage, i=inputs: builder.chunk(s, 1, i), lambda s=stage, i=inputs: builder.chunk(s, 2, i)
+            lambda s=stage, i=inputs: run_chunk(builder, s, 1, i),
+            lambda s=stage, i=inputs: run_chunk(builder, s, 2, i),
         )
         assert not new, f"kernels compiled for {stage} chunk 2: {new}"
 
@@ -453,17 +465,20 @@ def test_chunks_at_other_offsets_launch_only_kernels_already_compiled(variant, m
 
 
 def test_the_graph_is_the_same_however_the_work_is_cut(variant, monkeypatch):
-    import cloudgraph.graph as graph_module
-    from cloudgraph.graph import build_graph, build_params
+    import cloudgraph.build as build_module
+    import cloudgraph.stages as stages_module
+    from cloudgraph.build import build_graph
+    from cloudgraph.params import build_params
+    from cloudgraph.stages import local_chunks
 
     volume = sphere_volume(16)
     params = build_params(volume, 0.5, "draft", n_paths=1 << 13)
-    whole = build_graph(volume, 0.5, params)
-    monkeypatch.setattr(graph_module, "CHUNK_PATHS", 1000)  # 9 uneven chunks instead of one
-    monkeypatch.setattr(graph_module, "CHUNK_FLIGHTS", 777)
-    monkeypatch.setattr(graph_module, "CHUNK_SEEDS", 333)
-    monkeypatch.setattr(graph_module, "LOCAL_THREADS", 3)
-    cut = build_graph(volume, 0.5, params)
+    whole = build_graph(volume, 0.5, params, local_chunks)
+    monkeypatch.setattr(build_module, "CHUNK_PATHS", 1000)  # 9 uneven chunks instead of one
+    monkeypatch.setattr(build_module, "CHUNK_FLIGHTS", 777)
+    monkeypatch.setattr(build_module, "CHUNK_SEEDS", 333)
+    monkeypatch.setattr(stages_module, "LOCAL_THREADS", 3)
+    cut = build_graph(volume, 0.5, params, local_chunks)
     assert params.coverage_seeds > 3 * 333
     assert whole.n_nodes > 500 and whole.stats["collisions"] == cut.stats["collisions"]
     for x, y in zip(graph_arrays(whole), graph_arrays(cut), strict=True):
@@ -550,14 +565,16 @@ def test_the_node_table_holds_what_all_the_samples_at_once_give():
 def test_build_memory_does_not_grow_with_the_light_paths(variant):
     import tracemalloc
 
-    from cloudgraph.graph import build_graph, build_params
+    from cloudgraph.build import build_graph
+    from cloudgraph.params import build_params
+    from cloudgraph.stages import local_chunks
 
     volume = sphere_volume(16)
     peaks = []
     for n_paths in (1 << 16, 1 << 19):
         params = build_params(volume, 0.5, "draft", n_paths=n_paths)
         tracemalloc.start()
-        graph = build_graph(volume, 0.5, params)
+        graph = build_graph(volume, 0.5, params, local_chunks)
         peaks.append(tracemalloc.get_traced_memory()[1])
         tracemalloc.stop()
         assert graph.stats["collisions"] > n_paths

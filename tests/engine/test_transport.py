@@ -8,7 +8,7 @@ from cloudgraph.transport import transport
 
 
 def test_thesis_worked_example():
-    # §4.5.1 gives L' = [0.1, 0.28, 0.44, 0.54] (DESIGN.md). The thesis's own figure was not at
+    # §4.5.1 gives L' = [0.1, 0.28, 0.44, 0.54] (docs/method.md). The thesis's own figure was not at
     # hand; this four-node graph is a reconstruction that has exactly that result: node 1 lit
     # at 0.1 feeds node 2 (weight 0.8), which feeds nodes 3 and 4 (0.5 each).
     T = sp.csr_matrix(np.array([[0, 0, 0, 0], [0.8, 0, 0, 0], [0, 0.5, 0, 0], [0, 0.5, 0, 0]]))

@@ -3,9 +3,10 @@
 import numpy as np
 import pytest
 
+from cloudgraph.procedural import box_volume
 from cloudgraph.render import render_volpath
 from cloudgraph.scene import parse_scene
-from cloudgraph.volume import box_volume, load_volume, write_vdb
+from cloudgraph.volume import load_volume, write_vdb
 
 from ..helpers import box_interval, cube_volume, pixel_rays, rotated_affine
 

@@ -7,16 +7,9 @@ import pyopenvdb as vdb
 import pytest
 
 from cloudgraph.errors import VolumeError
-from cloudgraph.volume import (
-    box_volume,
-    load_volume,
-    noise_volume,
-    sphere_volume,
-    vdb_grid_table,
-    volume_info,
-    write_vdb,
-    write_vol,
-)
+from cloudgraph.procedural import box_volume, noise_volume, sphere_volume
+from cloudgraph.vdb import vdb_grid_table
+from cloudgraph.volume import load_volume, volume_info, write_vdb, write_vol
 
 from ..helpers import rotated_affine
 

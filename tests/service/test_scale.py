@@ -12,8 +12,9 @@ from rq import Queue
 from rq.job import Job
 
 from cloudgraph.cache import CacheStore
+from cloudgraph.procedural import noise_volume
 from cloudgraph.scene import parse_scene
-from cloudgraph.volume import load_volume, noise_volume
+from cloudgraph.volume import load_volume
 from worker.chunks import SharedChunks, _Run
 
 from ..engine.test_graph import graph_arrays
@@ -109,12 +110,14 @@ def redis_only(tmp_path):
 def test_a_chunk_whose_worker_died_is_redone_and_the_graph_is_the_same(tmp_path, variant, redis_only):
     """A worker killed while it holds a chunk looks to the others like this: a claimed task whose
     lease is never renewed and whose result never comes."""
-    from cloudgraph.graph import build_graph, build_params
+    from cloudgraph.build import build_graph
+    from cloudgraph.params import build_params
+    from cloudgraph.stages import local_chunks
 
     volume = noise_volume(24, seed=5)
     ds = 1.0 / float(volume.density.max() * volume.voxel_size.max())
     params = build_params(volume, ds, "draft", n_paths=1 << 16)  # 4 light-path chunks
-    alone = build_graph(volume, ds, params)
+    alone = build_graph(volume, ds, params, local_chunks)
 
     dead: list[str] = []
 
@@ -143,15 +146,15 @@ def test_a_chunk_whose_worker_died_is_redone_and_the_graph_is_the_same(tmp_path,
 
 
 def test_late_tasks_wait_until_no_other_task_is_left(redis_only):
-    """Tasks of a late stage (the field's light march, GraphBuilder.late_stages) fill the gaps:
+    """Tasks of a late stage (the field's light march, stages.LATE_STAGES) fill the gaps:
     a helper takes them only when no other task is out, a coordinator only when it asks, and then
     only those of the stage it asks for."""
-    from cloudgraph.graph import GraphBuilder
+    from cloudgraph.stages import LAST_STAGES, LATE_STAGES
 
-    assert {"field_tau", "bins", "graph_file"} <= GraphBuilder.late_stages
-    assert "trace" not in GraphBuilder.late_stages
+    assert {"field_tau", "bins", "graph_file"} <= LATE_STAGES
+    assert "trace" not in LATE_STAGES
     run = _Run(redis_only, "late", lease_s=1.0)
-    assert GraphBuilder.last_stages == {"graph_file"}
+    assert LAST_STAGES == {"graph_file"}
     run.put(1, 2, late=True)  # the light march, put out first
     run.put(2, 1, late=False)
     run.put(4, 1, late=True, last=True)  # the graph file's bytes, wanted at the very end

@@ -1,4 +1,4 @@
-"""``cloudgraph bench``: graph integrator against volpath, side by side (BENCHMARK.md).
+"""``cloudgraph bench``: graph integrator against volpath, side by side (docs/benchmark.md).
 
 Per scene and camera: precompute stage times, sizes, one graph frame, its errors against a
 volpath reference (thesis Eq. 5.1), and the time volpath needs to reach the same MAE (spp
@@ -31,11 +31,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .cache import CacheStore
-from .metrics import bias_metrics, compare
-from .render import render_volpath
-from .scene import Scene, parse_scene
-from .volume import Volume, load_volume, noise_volume, sphere_volume
+from cloudgraph.cache import CacheStore, volume_id
+from cloudgraph.metrics import bias_metrics, compare
+from cloudgraph.precompute import precompute
+from cloudgraph.procedural import noise_volume, sphere_volume
+from cloudgraph.render import GraphRenderer, render_volpath
+from cloudgraph.scene import CameraSpec, Scene, parse_scene
+from cloudgraph.volume import Volume, load_volume
 
 log = logging.getLogger(__name__)
 DATA = Path(os.environ.get("CLOUDGRAPH_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
@@ -49,13 +51,13 @@ class BenchScene:
 
 
 #: The scenes run when none are named; ``holdout`` and ``dense`` are run and reported apart
-#: (BENCHMARK.md; issue 11).
+#: (docs/benchmark.md; issue 11).
 SCENES = ["sphere", "noise", "smoke1", "blender"]
 
 
 def bench_scenes(names: list[str] | None = None) -> list[BenchScene]:
     """The scenes (default: :data:`SCENES`); density_scale puts the densest voxel at optical
-    depth 1 (BENCHMARK.md)."""
+    depth 1 (docs/benchmark.md)."""
     makers = {
         "sphere": lambda: sphere_volume(48),  # homogeneous; optical radius 23 x OD/voxel
         "noise": lambda: noise_volume(64, seed=7),
@@ -71,7 +73,7 @@ def bench_scenes(names: list[str] | None = None) -> list[BenchScene]:
         if name not in makers:
             raise ValueError(f"unknown bench scene {name!r}; choose from {', '.join(makers)}")
         v = makers[name]()
-        # sphere: optical radius about 10 (BENCHMARK.md); dense: densest voxel at optical depth 4;
+        # sphere: optical radius about 10 (docs/benchmark.md); dense: densest voxel at optical depth 4;
         # others: at 1
         od_voxel = {"sphere": 10.0 / 23.0, "dense": 4.0}.get(name, 1.0)
         out.append(BenchScene(name, v, od_voxel / float(v.density.max() * v.voxel_size.max())))
@@ -112,8 +114,6 @@ RELIGHT = np.array([-0.3, -0.9, 0.3]) / np.linalg.norm([-0.3, -0.9, 0.3])
 
 def reference(bs: BenchScene, scene: Scene, spp: int, cache_dir: Path) -> np.ndarray:
     """volpath (RR off) at ``spp``, kept on disk by the scene's hash."""
-    from .cache import volume_id
-
     # A volpath image does not depend on the engine: its key holds the volume's hash at a fixed
     # format version (4, when this was fixed), so that engine changes keep the references
     vid = volume_id(bs.volume, version=4)
@@ -191,8 +191,6 @@ def field_row(bs: BenchScene, scene: Scene, renderer, ref: np.ndarray, ref_spp: 
     """The ``field`` estimator's figures for one scene and camera (issue 8): one-sample frame times
     at 64^2 and 256^2 beside one volpath sample per pixel at 256^2, and the error and equal-error
     speed-up of the antialiased frame (FIELD_AA_SPP)."""
-    from .scene import CameraSpec
-
     s64, _ = timed_frames(partial(renderer.render, scene.camera, 1, estimator="field"))
     aa64, image = timed_frames(partial(renderer.render, scene.camera, FIELD_AA_SPP, estimator="field"))
     cam = CameraSpec(**cam256)
@@ -225,7 +223,7 @@ def reference_noise(volpath_run: dict, ref_spp: int) -> float:
     return float(c / np.sqrt(ref_spp))
 
 
-#: Samples per pixel of the converged graph image (bias, not noise; BENCHMARK.md).
+#: Samples per pixel of the converged graph image (bias, not noise; docs/benchmark.md).
 CONVERGED_SPP = 1024
 
 
@@ -238,12 +236,9 @@ def run_bench(
     graph_spp: int = 64,
 ) -> dict:
     """Runs the benchmark, writes JSON and markdown under ``out_dir`` and prints the table."""
-    from .integrators.graph import GraphRenderer
-    from .precompute import precompute
-
     out_dir = Path(out_dir)
     names = scenes or (["sphere", "noise"] if quick else SCENES)
-    # BENCHMARK.md asks for references of 4096 spp or more; with Russian roulette off that is
+    # docs/benchmark.md asks for references of 4096 spp or more; with Russian roulette off that is
     # hours for the real clouds on two cores, so the full run uses 2048 (written in the results,
     # where each reference's own render time is logged).
     size = 64
@@ -343,7 +338,7 @@ def run_bench(
     return result
 
 
-#: References of the converged mode (BENCHMARK.md: 4096 spp or more).
+#: References of the converged mode (docs/benchmark.md: 4096 spp or more).
 CONVERGED_REF_SPP = 4096
 #: The independent volpath run that measures each reference's own noise, and the binned noise
 #: above which a reference gets 4x the samples.
@@ -378,9 +373,6 @@ def run_converged(scenes: list[str] | None = None, out_dir: str | Path = "bench/
     The reference's own noise in the binned metric comes from an independent NOISE_PROBE_SPP run
     (:func:`reference_within`).
     """
-    from .integrators.graph import GraphRenderer
-    from .precompute import precompute
-
     out_dir = Path(out_dir)
     store = CacheStore(out_dir.parent / "cache")
     rows = []

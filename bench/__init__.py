@@ -1,0 +1,1 @@
+"""The benchmark harness (``cloudgraph bench``, docs/benchmark.md) and its one-question scripts."""
