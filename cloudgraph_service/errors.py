@@ -12,6 +12,12 @@ _PATH = re.compile(r"(?<![\w.~:/])/(?!v1/)(?:[^\s'\"/,;:()]+/)*[^\s'\",;:()]+")
 _VOLUME_FILE = re.compile(r"\.(vdb|vol)$")
 
 
+class PayloadError(ValueError):
+    """A job's payload that its job function refuses (a field missing, unknown or of the wrong
+    type: a sender of another version, or a bug). Not the client's to fix: the log keeps this
+    message, the client reads that an internal error ended the job (:func:`public_message`)."""
+
+
 def scrub(text: str) -> str:
     """``text`` with every absolute path replaced: a volume file by "the volume", others by
     "a server file"."""

@@ -15,17 +15,27 @@ Job meta fields (``job.meta``), written by the API when it enqueues and by the w
 | children     | API     | an animation's frame jobs                                        |
 | out_dir      | API     | an animation's folder of frames                                  |
 | frames       | API     | an animation's frame count                                       |
+
+Job arguments cross the queue by name: each job function takes one keyword argument,
+``payload`` (:data:`PAYLOAD`), the JSON of its payload model (:class:`PrecomputeJob`,
+:class:`RenderJob`, :class:`FramesJob`, :class:`EncodeJob`, :class:`ChunkJob`), which names the
+function it is for. The sender builds the model (:func:`enqueue_payload`); the job function
+validates it again (:meth:`JobPayload.received`) before it does anything.
 """
 
 from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import Any, ClassVar, Literal, Self
 
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from redis import Redis
 from rq import Queue
 from rq.exceptions import NoSuchJobError
 from rq.job import Job, JobStatus
+
+from .errors import PayloadError
 
 # ---------------------------------------------------------------------------- job functions
 PRECOMPUTE_JOB = "worker.jobs.precompute_job"
@@ -33,6 +43,111 @@ RENDER_JOB = "worker.jobs.render_job"
 FRAMES_JOB = "worker.jobs.frames_job"
 ENCODE_JOB = "worker.jobs.encode_job"
 CHUNK_JOB = "worker.jobs.chunk_job"  # a helper of another job's precompute (worker/chunks.py)
+
+# --------------------------------------------------------------------------------- payloads
+#: The one keyword argument of every job function: its payload, as JSON.
+PAYLOAD = "payload"
+#: A scene spec v1 (cloudgraph.scene) with ``volume.id`` in place of a path, as JSON; the API
+#: has validated it, the job function parses it again.
+SceneJSON = dict[str, Any]
+#: What a render job writes (RenderJob.format).
+IMAGE_FORMATS = ("png", "exr")
+
+
+class JobPayload(BaseModel):
+    """The arguments of one job function, by name (the function is ``FUNC``). Quality, integrator
+    and estimator names are the engine's (``cloudgraph.options``), checked by the API against
+    those lists before it enqueues; here they are names, not a second copy of the lists."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    FUNC: ClassVar[str]
+
+    def job_kwargs(self) -> dict[str, dict]:
+        """The job function's keyword arguments: ``{PAYLOAD: <this payload as JSON>}``."""
+        return {PAYLOAD: self.model_dump(mode="json")}
+
+    @classmethod
+    def received(cls, data: object) -> Self:
+        """The payload as a job function takes it, validated on this side of the queue.
+
+        Raises:
+            PayloadError: a field missing, unknown or of the wrong type; the message names each.
+        """
+        try:
+            return cls.model_validate(data)
+        except ValidationError as err:
+            fields = "; ".join(
+                f"{'.'.join(str(p) for p in e['loc']) or 'the payload'}: {e['msg']}" for e in err.errors()
+            )
+            raise PayloadError(f"{cls.FUNC} refused its payload: {fields}") from None
+
+
+class PrecomputeJob(JobPayload):
+    """Builds (or finds) the radiance cache of a scene (its camera is not used)."""
+
+    FUNC: ClassVar[str] = PRECOMPUTE_JOB
+    scene: SceneJSON
+    quality: str
+
+
+class RenderJob(JobPayload):
+    """Renders one image of ``scene`` to ``out``.
+
+    ``radiance_key`` is the scene's radiance cache key where the API already knows it (read from
+    the finished precompute it found): a worker that holds that cache loaded renders at once,
+    without working the keys out from the volume again. None: the worker computes it.
+    """
+
+    FUNC: ClassVar[str] = RENDER_JOB
+    scene: SceneJSON
+    integrator: str
+    estimator: str
+    quality: str
+    format: Literal[IMAGE_FORMATS]
+    exposure: float  # PNG exposure in stops
+    out: str  # the image file (render_path)
+    radiance_key: str | None = None
+
+
+class FramesJob(JobPayload):
+    """Renders frames ``first``, ``first + 1``, ... of an animation (``FRAME_FILE`` in
+    ``out_dir``): ``scene`` seen from each of ``cameras`` in turn. The frames share everything
+    but the camera, so one radiance cache (found by one key) serves them all; ``radiance_key``
+    as in :class:`RenderJob`."""
+
+    FUNC: ClassVar[str] = FRAMES_JOB
+    scene: SceneJSON
+    cameras: list[dict[str, Any]] = Field(min_length=1)  # camera specs (cloudgraph.scene)
+    first: int = Field(ge=0)
+    integrator: str
+    estimator: str
+    quality: str
+    exposure: float
+    out_dir: str  # animation_dir
+    radiance_key: str | None = None
+
+
+class EncodeJob(JobPayload):
+    """Encodes an animation's ``frames`` frames in ``out_dir`` into ``VIDEO_FILE``."""
+
+    FUNC: ClassVar[str] = ENCODE_JOB
+    out_dir: str
+    fps: float = Field(gt=0)
+    frames: int = Field(ge=1)
+
+
+class ChunkJob(JobPayload):
+    """Helps with the chunks of another job's shared precompute ``run`` (worker/chunks.py)."""
+
+    FUNC: ClassVar[str] = CHUNK_JOB
+    run: str
+
+
+def enqueue_payload(queue: Queue, payload: JobPayload, **options) -> Job:
+    """Enqueues ``payload``'s job function with its payload by name; ``options`` are RQ's
+    (``job_id``, ``depends_on``, ``job_timeout``, ``meta``, ...)."""
+    return queue.enqueue(payload.FUNC, kwargs=payload.job_kwargs(), **options)
+
 
 # ----------------------------------------------------------------------------- time limits
 RESULT_TTL_S = 7 * 24 * 3600  # finished and failed jobs are kept this long

@@ -1,33 +1,42 @@
-"""Service settings, one class, read from the environment (``CLOUDGRAPH_*``) at start-up."""
+"""Service settings, one class, read from the environment (``CLOUDGRAPH_*``) at start-up.
+
+Each setting is declared once, with its type and default; ``CLOUDGRAPH_<NAME>`` overrides it (an
+empty variable counts as unset). Nothing here is built at import time: the API, the workers and
+the upload check each call :meth:`Settings.from_env` at their entry point.
+"""
 
 from __future__ import annotations
 
-import os
-from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Annotated
 
+from pydantic import Field, ValidationError, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+ENV_PREFIX = "CLOUDGRAPH_"
 #: Keys that must never guard a service (the template's placeholders and common words).
 _PLACEHOLDER_KEYS = {"changeme", "changethis", "secret", "password"}
+_MIN_KEY_LENGTH = 16
+#: pydantic's error types for a value that is not a number, as the settings' errors name them.
+_NOT_A = {"int_parsing": "int", "int_from_float": "int", "int_type": "int", "float_parsing": "float"}
 
 
-def _env(name: str, default, cast=str):
-    raw = os.environ.get(f"CLOUDGRAPH_{name}")
-    if raw is None or raw == "":
-        return default
-    try:
-        return cast(raw)
-    except ValueError:
-        raise ValueError(f"CLOUDGRAPH_{name}={raw!r} is not a valid {cast.__name__}") from None
-
-
-@dataclass(frozen=True)
-class Settings:
+class Settings(BaseSettings):
     """Limits and locations shared by the API and the workers (api.md, "Settings")."""
 
-    DATA_DIR: Path = Path("data")
+    model_config = SettingsConfigDict(
+        env_prefix=ENV_PREFIX,
+        case_sensitive=True,
+        env_ignore_empty=True,
+        frozen=True,
+        validate_default=True,  # DATA_DIR's default is made absolute too
+    )
+
+    DATA_DIR: Path = Path("data")  # absolute once read (relative to the working directory)
     CACHE_DIR: Path | None = None  # CLOUDGRAPH_CACHE_DIR, else DATA_DIR/cache
     REDIS_URL: str = "redis://127.0.0.1:6379/0"
-    API_KEYS: tuple[str, ...] = field(default_factory=tuple)
+    # Comma-separated in the environment; empty: no key is asked for
+    API_KEYS: Annotated[tuple[str, ...], NoDecode] = Field((), repr=False)
     QUEUE: str = "cloudgraph"
     MAX_UPLOAD_MB: int = 512
     MAX_BODY_KB: int = 256  # JSON request bodies
@@ -48,46 +57,40 @@ class Settings:
     WORKER_RENDERERS: int = 4  # loaded radiance caches kept per worker
     WORKER_THREADS: int = 0  # Dr.Jit threads per worker process (0: one per core)
 
+    @field_validator("DATA_DIR", "CACHE_DIR")
+    @classmethod
+    def _absolute(cls, path: Path | None) -> Path | None:
+        return None if path is None else path.resolve()
+
+    @field_validator("API_KEYS", mode="before")
+    @classmethod
+    def _split_keys(cls, value):
+        if isinstance(value, str):
+            return tuple(k.strip() for k in value.split(",") if k.strip())
+        return value
+
+    @field_validator("API_KEYS")
+    @classmethod
+    def _no_placeholder_keys(cls, keys: tuple[str, ...]) -> tuple[str, ...]:
+        for k in keys:
+            if len(k) < _MIN_KEY_LENGTH or k.lower() in _PLACEHOLDER_KEYS:
+                raise ValueError(
+                    f"holds a placeholder or short key; use {_MIN_KEY_LENGTH}+ random characters"
+                )
+        return keys
+
     @classmethod
     def from_env(cls) -> Settings:
         """The settings from ``CLOUDGRAPH_*`` variables; refuses placeholder API keys.
 
         Raises:
-            ValueError: a variable that does not parse, or a short or placeholder API key.
+            ValueError: a variable that does not parse, or a short or placeholder API key, in one
+                line that names the variable (never an API key's value).
         """
-        keys = tuple(k.strip() for k in os.environ.get("CLOUDGRAPH_API_KEYS", "").split(",") if k.strip())
-        for k in keys:
-            if len(k) < 16 or k.lower() in _PLACEHOLDER_KEYS:
-                raise ValueError(
-                    "CLOUDGRAPH_API_KEYS holds a placeholder or short key; use 16+ random characters"
-                )
-        d = cls()
-        cache_dir = _env("CACHE_DIR", None, Path)
-        return cls(
-            DATA_DIR=Path(_env("DATA_DIR", d.DATA_DIR, Path)).resolve(),
-            CACHE_DIR=cache_dir.resolve() if cache_dir else None,
-            REDIS_URL=_env("REDIS_URL", d.REDIS_URL),
-            API_KEYS=keys,
-            QUEUE=_env("QUEUE", d.QUEUE),
-            MAX_UPLOAD_MB=_env("MAX_UPLOAD_MB", d.MAX_UPLOAD_MB, int),
-            MAX_BODY_KB=_env("MAX_BODY_KB", d.MAX_BODY_KB, int),
-            MAX_VOXELS=_env("MAX_VOXELS", d.MAX_VOXELS, int),
-            MAX_IMAGE_SIDE=_env("MAX_IMAGE_SIDE", d.MAX_IMAGE_SIDE, int),
-            MAX_SPP=_env("MAX_SPP", d.MAX_SPP, int),
-            MAX_FRAMES=_env("MAX_FRAMES", d.MAX_FRAMES, int),
-            MAX_DEPTH=_env("MAX_DEPTH", d.MAX_DEPTH, int),
-            MAX_VOXEL_TAU=_env("MAX_VOXEL_TAU", d.MAX_VOXEL_TAU, float),
-            MAX_QUEUED=_env("MAX_QUEUED", d.MAX_QUEUED, int),
-            SYNC_MAX_PIXELS=_env("SYNC_MAX_PIXELS", d.SYNC_MAX_PIXELS, int),
-            SYNC_WAIT_S=_env("SYNC_WAIT_S", d.SYNC_WAIT_S, float),
-            JOB_TIMEOUT_S=_env("JOB_TIMEOUT_S", d.JOB_TIMEOUT_S, int),
-            JOB_RETRIES=_env("JOB_RETRIES", d.JOB_RETRIES, int),
-            HEARTBEAT_S=_env("HEARTBEAT_S", d.HEARTBEAT_S, int),
-            UPLOAD_CHECK_S=_env("UPLOAD_CHECK_S", d.UPLOAD_CHECK_S, float),
-            CACHE_MAX_GB=_env("CACHE_MAX_GB", d.CACHE_MAX_GB, float),
-            WORKER_RENDERERS=_env("WORKER_RENDERERS", d.WORKER_RENDERERS, int),
-            WORKER_THREADS=_env("WORKER_THREADS", d.WORKER_THREADS, int),
-        )
+        try:
+            return cls()
+        except ValidationError as err:
+            raise ValueError("; ".join(_one_line(e) for e in err.errors())) from None
 
     @property
     def volumes_dir(self) -> Path:
@@ -100,3 +103,14 @@ class Settings:
     @property
     def outputs_dir(self) -> Path:
         return self.DATA_DIR / "outputs"
+
+
+def _one_line(error: dict) -> str:
+    """One of pydantic's errors as the variable's name and what is wrong with it."""
+    name = ENV_PREFIX + ".".join(str(p) for p in error["loc"][:1])
+    if name == ENV_PREFIX + "API_KEYS":  # a key's value is a secret: never echoed
+        return f"{name} {error['msg'].removeprefix('Value error, ')}"
+    raw = error.get("input")
+    if error["type"] in _NOT_A:
+        return f"{name}={raw!r} is not a valid {_NOT_A[error['type']]}"
+    return f"{name}={raw!r}: {error['msg']}"

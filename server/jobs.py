@@ -20,9 +20,11 @@ from cloudgraph_service.protocol import (
     FRAME_GLOB,
     HEARTBEAT_GRACE_S,
     RESULT_TTL_S,
+    JobPayload,
     cancel_key,
     end_dependents,
     end_if_orphaned,
+    enqueue_payload,
 )
 from cloudgraph_service.protocol import fetch as fetch  # re-exported for the routes
 from cloudgraph_service.settings import Settings
@@ -71,23 +73,24 @@ def check_capacity(queue: Queue, settings: Settings, extra: int = 1) -> None:
 def enqueue(
     queue: Queue,
     settings: Settings,
-    func: str,
-    *args,
+    payload: JobPayload,
+    *,
     job_id: str | None = None,
     kind: str,
     depends_on=None,
     meta: dict | None = None,
     at_front: bool = False,
 ) -> Job:
-    """Enqueues with the service's budget; ``meta`` describes the job to clients.
+    """Enqueues ``payload``'s job function (its arguments by name) with the service's budget;
+    ``meta`` describes the job to clients.
 
     ``retry`` counts the reruns a job gets when its worker dies under it; a job that fails with
     an error is never rerun (the worker sets its retries to 0: the error would repeat). A job
     enqueued after what it waits on has already failed is ended at once.
     """
-    job = queue.enqueue(
-        func,
-        *args,
+    job = enqueue_payload(
+        queue,
+        payload,
         job_id=job_id,
         depends_on=depends_on,
         at_front=at_front,
@@ -100,6 +103,11 @@ def enqueue(
     if depends_on is not None:
         end_if_orphaned(job)
     return job
+
+
+def radiance_key_of(job: Job) -> str | None:
+    """The radiance cache key a finished precompute job found or built (None if it has none)."""
+    return ((job.return_value() or {}).get("keys") or {}).get("radiance_key")
 
 
 def status_of(job: Job) -> JobStatus:

@@ -13,12 +13,11 @@ Prints one JSON line: ``{"info": ..., "created": ...}`` or ``{"error": ..., "sta
 from __future__ import annotations
 
 import json
-import os
 import resource
 import sys
-import tempfile
 from pathlib import Path
 
+from cloudgraph.files import write_atomic
 from cloudgraph_service.settings import Settings
 
 _FLOAT = ("float", "half")
@@ -39,7 +38,7 @@ def grid_stats(path: Path, name: str, max_voxels: int) -> dict[str, dict]:
     import pyopenvdb as vdb
 
     from cloudgraph.errors import VolumeError
-    from cloudgraph.volume import value_type, vdb_grid_table
+    from cloudgraph.vdb import value_type, vdb_grid_table
 
     out = {}
     for grid, tree in vdb_grid_table(path):
@@ -90,11 +89,7 @@ def check(path: Path, name: str, settings: Settings) -> dict:
         if not stats:  # a .vol: its one grid is the density
             g = info["grids"][0]
             g.update(value_max=info["value_range"][1], voxel_size=info["voxel_size"])
-        meta = store.root / f"{info['id']}.json"
-        fd, tmp = tempfile.mkstemp(dir=store.root, prefix=f".{meta.name}.", suffix=".tmp")
-        with os.fdopen(fd, "w") as f:
-            json.dump(info, f)
-        os.replace(tmp, meta)
+        write_atomic(store.root / f"{info['id']}.json", json.dumps(info).encode())
     return {"info": info, "created": created}
 
 

@@ -145,7 +145,11 @@ class Supervisor:
 
 def main() -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    Supervisor(Settings.from_env()).loop()
+    try:
+        settings = Settings.from_env()
+    except ValueError as err:  # one line, not a traceback: what to set, and why
+        raise SystemExit(f"cloudgraph worker: {err}") from None
+    Supervisor(settings).loop()
 
 
 if __name__ == "__main__":

@@ -1,4 +1,8 @@
-"""Job functions. Thin: resolve the scene, call the engine, report progress, write results."""
+"""Job functions. Thin: resolve the scene, call the engine, report progress, write results.
+
+Each takes its arguments by name, as one payload (``payload``: the JSON of its model in
+cloudgraph_service.protocol), and validates it before it does anything else.
+"""
 
 from __future__ import annotations
 
@@ -13,15 +17,21 @@ from pathlib import Path
 import numpy as np
 from rq import Queue, Worker, get_current_job
 
+from cloudgraph.files import write_atomic
 from cloudgraph.image import png_bytes, write_exr
 from cloudgraph.scene import parse_scene
 from cloudgraph_service.protocol import (
-    CHUNK_JOB,
     FRAME_FFMPEG,
     FRAME_FILE,
     RESULT_TTL_S,
     VIDEO_FILE,
+    ChunkJob,
+    EncodeJob,
+    FramesJob,
+    PrecomputeJob,
+    RenderJob,
     cancel_key,
+    enqueue_payload,
 )
 
 from .chunks import MAX_HELPERS, SharedChunks, help_run
@@ -47,37 +57,45 @@ def report(stage: str, fraction: float) -> None:
     job.save_meta()
 
 
-def _precompute(scene, volume, quality: str, progress):
-    """The scene's radiance cache, its chunks run by every free worker (worker/chunks.py); the
-    store is then trimmed to its size limit (LRU)."""
-    from cloudgraph.graph import build_params, local_chunks
-    from cloudgraph.precompute import cache_keys, precompute
+def _cache(scene, volume, quality: str):
+    """(keys, build) of the scene's radiance cache: its keys, worked out once per job (a pass
+    over the volume), and ``build(progress)``, which finds or makes the cache under those keys
+    with its chunks run by every free worker (worker/chunks.py), then trims the store to its
+    size limit (LRU)."""
+    from cloudgraph.cache import cache_keys
+    from cloudgraph.params import build_params
+    from cloudgraph.precompute import precompute
+    from cloudgraph.stages import local_chunks
     from cloudgraph.store import evict_lru
 
-    s, job = state(), get_current_job()
+    s = state()
     params = build_params(volume, scene.medium.density_scale, quality)
     keys = cache_keys(scene, volume, params)
-    rkey = keys["radiance_key"]
-    if job is None or (s.caches.radiance_path(rkey).is_file() and s.caches.field_path(rkey).is_file()):
-        shared = nullcontext(local_chunks)  # outside a job, or nothing to compute: here
-    else:  # helpers are asked for at once, so that they load the volume while this worker does
-        run = f"{job.id}.{uuid.uuid4().hex[:8]}"
-        shared = SharedChunks(
-            job.connection,
-            run,
-            {
-                "scene": scene.model_dump(mode="json"),
-                "quality": quality,
-                "params": params.to_dict(),
-                "graph": not s.caches.graph_path(keys["graph_key"]).is_file(),  # to be built
-            },
-            s.caches.root / "runs" / run,
-            partial(_ask_helpers, job.connection, run),
-        )
-    with shared as chunks:
-        cache = precompute(scene, volume, quality, s.caches, progress, chunks)
-    evict_lru(s.caches.root, int(s.settings.CACHE_MAX_GB * 2**30))
-    return cache
+
+    def build(progress):
+        job, rkey = get_current_job(), keys["radiance_key"]
+        if job is None or (s.caches.radiance_path(rkey).is_file() and s.caches.field_path(rkey).is_file()):
+            shared = nullcontext(local_chunks)  # outside a job, or nothing to compute: here
+        else:  # helpers are asked for at once, so that they load the volume while this worker does
+            run = f"{job.id}.{uuid.uuid4().hex[:8]}"
+            shared = SharedChunks(
+                job.connection,
+                run,
+                {
+                    "scene": scene.model_dump(mode="json"),
+                    "quality": quality,
+                    "params": params.to_dict(),
+                    "graph": not s.caches.graph_path(keys["graph_key"]).is_file(),  # to be built
+                },
+                s.caches.root / "runs" / run,
+                partial(_ask_helpers, job.connection, run),
+            )
+        with shared as chunks:
+            cache = precompute(scene, volume, quality, s.caches, progress, chunks)
+        evict_lru(s.caches.root, int(s.settings.CACHE_MAX_GB * 2**30))
+        return cache
+
+    return keys, build
 
 
 def _ask_helpers(connection, run: str) -> int:
@@ -86,9 +104,9 @@ def _ask_helpers(connection, run: str) -> int:
     queue = Queue(settings.QUEUE, connection=connection)
     n = max(0, min(Worker.count(connection=connection, queue=queue) - 1, MAX_HELPERS))
     for _ in range(n):
-        queue.enqueue(
-            CHUNK_JOB,
-            run,
+        enqueue_payload(
+            queue,
+            ChunkJob(run=run),
             at_front=True,
             job_timeout=settings.JOB_TIMEOUT_S,
             result_ttl=RESULT_TTL_S,
@@ -101,7 +119,8 @@ def _ask_helpers(connection, run: str) -> int:
 def _builder(spec: dict):
     """The graph builder of a shared run's spec (worker/chunks.py), with its node cells where the
     run builds a graph: a helper makes it while the coordinator puts out the first stage."""
-    from cloudgraph.graph import BuildParams, GraphBuilder
+    from cloudgraph.build import GraphBuilder
+    from cloudgraph.params import BuildParams
 
     sc = parse_scene(spec["scene"])
     builder = GraphBuilder(state().volume(sc), sc.medium.density_scale, BuildParams(**spec["params"]))
@@ -110,108 +129,123 @@ def _builder(spec: dict):
     return builder
 
 
-def chunk_job(run: str) -> dict:
-    """Helps with another job's graph build (worker/chunks.py) until it ends."""
+def chunk_job(payload: dict) -> dict:
+    """Helps with another job's graph build (worker/chunks.py) until it ends (ChunkJob)."""
+    run = ChunkJob.received(payload).run
     report("helping", 0.0)
     n = help_run(get_current_job().connection, run, _builder)
     return {"run": run, "chunks": n}
 
 
-def _renderer(scene, volume, quality: str, progress):
-    """A loaded renderer for the scene's radiance cache, found by its keys before any file is read."""
-    from cloudgraph.graph import build_params
-    from cloudgraph.integrators.graph import GraphRenderer
-    from cloudgraph.precompute import cache_keys
+def _renderer(scene, volume, quality: str, progress, radiance_key: str | None = None):
+    """A loaded renderer for the scene's radiance cache, found by its radiance key before any
+    file is read.
 
-    keys = cache_keys(scene, volume, build_params(volume, scene.medium.density_scale, quality))
-    return state().renderers.get_or_make(
-        keys["radiance_key"],
-        lambda: GraphRenderer(_precompute(scene, volume, quality, progress), volume, scene),
-    )
+    ``radiance_key`` is the key handed down with the job (the API read it from the finished
+    precompute; None where it did not know it). A renderer this worker holds under it serves at
+    once: this worker put it there under the key it worked out itself, from the same volume,
+    medium, light and depth. Otherwise the key is worked out here, as the cache needs it anyway,
+    and a handed key that differs is logged and not used.
+    """
+    from cloudgraph.render import GraphRenderer
+
+    renderers = state().renderers
+    found = renderers.get(radiance_key) if radiance_key else None
+    if found is not None:
+        return found
+    keys, build = _cache(scene, volume, quality)
+    rkey = keys["radiance_key"]
+    if radiance_key and radiance_key != rkey:
+        job = get_current_job()
+        log.warning(
+            "job %s was handed radiance key %s, but its scene's is %s: rendering with the scene's",
+            job.id if job else "-",
+            radiance_key,
+            rkey,
+        )
+    return renderers.get_or_make(rkey, lambda: GraphRenderer(build(progress), volume, scene))
 
 
-def precompute_job(scene: dict, quality: str) -> dict:
-    """Builds (or finds) the radiance cache of a scene; returns its keys and stats."""
-    sc = parse_scene(scene)
-    cache = _precompute(sc, state().volume(sc), quality, report)
+def _renderer_for(integrator: str, scene, volume, quality: str, radiance_key: str | None):
+    """The graph integrator's renderer (its precompute reported as the job's first 90 %), or
+    None for volpath."""
+    if integrator != "graph":
+        return None
+    return _renderer(scene, volume, quality, lambda s, f: report(s, 0.9 * f), radiance_key)
+
+
+def precompute_job(payload: dict) -> dict:
+    """Builds (or finds) the radiance cache of a scene (PrecomputeJob); returns its keys and
+    stats."""
+    p = PrecomputeJob.received(payload)
+    sc = parse_scene(p.scene)
+    _, build = _cache(sc, state().volume(sc), p.quality)
+    cache = build(report)
     return {"keys": cache.keys, "stats": cache.stats}
 
 
-def render_image(
-    scene: dict, integrator: str, quality: str, estimator: str = "gather"
-) -> tuple[np.ndarray, float]:
-    """(image, seconds) for a scene with the graph or volpath integrator; ``estimator`` is the
-    graph integrator's camera stage (one loaded renderer serves them all)."""
+def render_image(scene, volume, renderer=None, estimator: str = "gather") -> tuple[np.ndarray, float]:
+    """(image, seconds) of a parsed scene with the graph ``renderer`` (``estimator``: its camera
+    stage; one loaded renderer serves them all), or with volpath where it is None."""
     from cloudgraph.render import render_volpath
 
-    sc = parse_scene(scene)
-    volume = state().volume(sc)
-    if integrator == "graph":
-        renderer = _renderer(sc, volume, quality, lambda s, f: report(s, 0.9 * f))
+    if renderer is not None:
         report("render", 0.9)
         t0 = time.perf_counter()
-        image = renderer.render(sc.camera, sc.render.spp, sc.render.seed, estimator=estimator)
+        image = renderer.render(scene.camera, scene.render.spp, scene.render.seed, estimator=estimator)
     else:
         report("render", 0.0)
         t0 = time.perf_counter()
-        image = render_volpath(sc, volume)
+        image = render_volpath(scene, volume)
     return image, time.perf_counter() - t0
 
 
-def render_job(
-    scene: dict,
-    integrator: str,
-    fmt: str,
-    quality: str,
-    exposure: float,
-    out: str,
-    estimator: str = "gather",
-) -> dict:
-    """Renders one image to ``out`` (png or exr)."""
-    image, seconds = render_image(scene, integrator, quality, estimator)
-    path = Path(out)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp" + path.suffix)
-    if fmt == "exr":
+def render_job(payload: dict) -> dict:
+    """Renders one image to the payload's ``out``, png or exr (RenderJob)."""
+    p = RenderJob.received(payload)
+    sc = parse_scene(p.scene)
+    volume = state().volume(sc)
+    renderer = _renderer_for(p.integrator, sc, volume, p.quality, p.radiance_key)
+    image, seconds = render_image(sc, volume, renderer, p.estimator)
+    path = Path(p.out)
+    if p.format == "exr":  # Mitsuba writes an EXR by path: under a temporary name, then renamed
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp" + path.suffix)
         write_exr(image, tmp)
+        tmp.replace(path)
     else:
-        tmp.write_bytes(png_bytes(image, exposure))
-    tmp.replace(path)
+        write_atomic(path, png_bytes(image, p.exposure))
     report("done", 1.0)
     return {"path": str(path), "render_s": round(seconds, 4), "mean": float(image.mean())}
 
 
-def frames_job(
-    scenes: list[dict],
-    first: int,
-    integrator: str,
-    quality: str,
-    exposure: float,
-    out_dir: str,
-    estimator: str = "gather",
-) -> dict:
-    """Renders a run of animation frames (``FRAME_FILE``), one Python call per frame."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    for i, scene in enumerate(scenes):  # a loop over frames, each a whole vectorised render
-        image, _ = render_image(scene, integrator, quality, estimator)
-        name = FRAME_FILE.format(first + i)
-        tmp = out / f".{name}.tmp"
-        tmp.write_bytes(png_bytes(image, exposure))
-        tmp.replace(out / name)
-        report("frames", (i + 1) / len(scenes))
-    return {"frames": len(scenes), "first": first}
+def frames_job(payload: dict) -> dict:
+    """Renders a run of animation frames (``FRAME_FILE``; FramesJob): the scene from each of the
+    payload's cameras in turn, one Python call per frame, all with one renderer."""
+    p = FramesJob.received(payload)
+    base = parse_scene(p.scene)
+    volume = state().volume(base)
+    renderer = _renderer_for(p.integrator, base, volume, p.quality, p.radiance_key)
+    out = Path(p.out_dir)
+    for i, camera in enumerate(p.cameras):  # a loop over frames, each a whole vectorised render
+        image, _ = render_image(parse_scene({**p.scene, "camera": camera}), volume, renderer, p.estimator)
+        write_atomic(out / FRAME_FILE.format(p.first + i), png_bytes(image, p.exposure))
+        report("frames", (i + 1) / len(p.cameras))
+    return {"frames": len(p.cameras), "first": p.first}
 
 
-def encode_job(out_dir: str, fps: float, n_frames: int) -> dict:
-    """Encodes frame_%05d.png into an H.264 MP4 that browsers play."""
+def encode_job(payload: dict) -> dict:
+    """Encodes frame_%05d.png into an H.264 MP4 that browsers play (EncodeJob)."""
     import imageio_ffmpeg
 
-    out = Path(out_dir)
+    p = EncodeJob.received(payload)
+    out, n_frames = Path(p.out_dir), p.frames
     missing = [i for i in range(n_frames) if not (out / FRAME_FILE.format(i)).is_file()]
     if missing:
         raise RuntimeError(f"{len(missing)} frames are missing, first {missing[0]}")
     report("encode", 0.0)
+    # ffmpeg writes by path (a faststart MP4 is rewritten in place): under a temporary name, then
+    # renamed
     tmp = out / ".video.tmp.mp4"
     cmd = [
         imageio_ffmpeg.get_ffmpeg_exe(),
@@ -219,7 +253,7 @@ def encode_job(out_dir: str, fps: float, n_frames: int) -> dict:
         "-loglevel",
         "error",
         "-framerate",
-        str(fps),
+        str(p.fps),
         "-i",
         str(out / FRAME_FFMPEG),
         "-c:v",
@@ -235,4 +269,4 @@ def encode_job(out_dir: str, fps: float, n_frames: int) -> dict:
     subprocess.run(cmd, check=True, capture_output=True, timeout=600)
     tmp.replace(out / VIDEO_FILE)
     report("done", 1.0)
-    return {"video": str(out / VIDEO_FILE), "frames": n_frames, "fps": fps}
+    return {"video": str(out / VIDEO_FILE), "frames": n_frames, "fps": p.fps}

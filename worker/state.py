@@ -20,6 +20,14 @@ class LRU:
     def __init__(self, size: int):
         self.size, self._d, self._lock = size, OrderedDict(), threading.Lock()
 
+    def get(self, key):
+        """The value under ``key`` (now the most recently used), or None."""
+        with self._lock:
+            if key in self._d:
+                self._d.move_to_end(key)
+                return self._d[key]
+        return None
+
     def get_or_make(self, key, make):
         with self._lock:
             if key in self._d:

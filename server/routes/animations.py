@@ -12,17 +12,17 @@ from fastapi.responses import FileResponse, JSONResponse
 from cloudgraph.scene import CameraSpec
 from cloudgraph_service.errors import shown
 from cloudgraph_service.protocol import (
-    ENCODE_JOB,
     FRAME_FILE,
     FRAME_GLOB,
-    FRAMES_JOB,
     VIDEO_FILE,
+    EncodeJob,
+    FramesJob,
     animation_dir,
 )
 
 from ..deps import QueueDep, RedisDep, SettingsDep, VolumesDep
 from ..errors import InputError
-from ..jobs import check_capacity, describe, enqueue, fetch, status_of
+from ..jobs import check_capacity, describe, enqueue, fetch, radiance_key_of, status_of
 from ..schemas import AnimationCreate, JobStatus
 from ..validation import MAX_COORD, MIN_RADIUS, check_camera, check_scene
 from .renders import precompute_for
@@ -115,23 +115,27 @@ def create_animation(
         if body.integrator == "graph"
         else None
     )
-    depends = pre if pre is not None and status_of(pre) != JobStatus.finished else None
+    ready = pre is not None and status_of(pre) == JobStatus.finished
+    depends = pre if pre is not None and not ready else None
     anim_id = f"anim-{uuid.uuid4().hex}"
     out_dir = animation_dir(settings.outputs_dir, anim_id)
-    scenes = [scene.model_copy(update={"camera": c}).model_dump() for c in camera_path(body)]
+    # The frames share the scene but for its camera: one radiance key serves them all
+    cameras = [c.model_dump(mode="json") for c in camera_path(body)]
+    shared = {
+        "scene": scene.model_dump(mode="json"),
+        "integrator": body.integrator,
+        "estimator": body.estimator,
+        "quality": body.quality,
+        "exposure": body.exposure,
+        "out_dir": str(out_dir),
+        "radiance_key": radiance_key_of(pre) if ready else None,
+    }
     children = []
     for first in range(0, body.frames, FRAMES_PER_JOB):
         j = enqueue(
             queue,
             settings,
-            FRAMES_JOB,
-            scenes[first : first + FRAMES_PER_JOB],
-            first,
-            body.integrator,
-            body.quality,
-            body.exposure,
-            str(out_dir),
-            body.estimator,
+            FramesJob(cameras=cameras[first : first + FRAMES_PER_JOB], first=first, **shared),
             kind="frames",
             depends_on=depends,
             meta={"animation": anim_id},
@@ -140,10 +144,7 @@ def create_animation(
     job = enqueue(
         queue,
         settings,
-        ENCODE_JOB,
-        str(out_dir),
-        body.fps,
-        body.frames,
+        EncodeJob(out_dir=str(out_dir), fps=body.fps, frames=body.frames),
         job_id=anim_id,
         kind="animation",
         depends_on=children,

@@ -10,7 +10,7 @@ from rq.job import Job
 
 from cloudgraph.cache import CacheStore
 from cloudgraph_service.errors import shown
-from cloudgraph_service.protocol import LOCK_S, PRECOMPUTE_JOB, cancel_key, lock_key
+from cloudgraph_service.protocol import LOCK_S, PrecomputeJob, cancel_key, lock_key
 
 from ..deps import QueueDep, RedisDep, SettingsDep, VolumesDep
 from ..jobs import cache_id, check_capacity, describe, enqueue, fetch, status_of
@@ -45,18 +45,16 @@ def ensure_cache(body: CacheCreate, redis, queue, settings, volumes, prefix: str
             redis.delete(cancel_key(job.id))
         check_capacity(queue, settings)
         scene = {
-            "volume": body.volume.model_dump(),
-            "medium": body.medium.model_dump(),
-            "light": body.light.model_dump(),
+            "volume": body.volume.model_dump(mode="json"),
+            "medium": body.medium.model_dump(mode="json"),
+            "light": body.light.model_dump(mode="json"),
             "camera": {"eye": [0, 0, 1], "target": [0, 0, 0]},
             "render": {"max_depth": body.max_depth},
         }
         job = enqueue(
             queue,
             settings,
-            PRECOMPUTE_JOB,
-            scene,
-            body.quality,
+            PrecomputeJob(scene=scene, quality=body.quality),
             job_id=job_id,
             kind="precompute",
             meta={"result_url": f"/v1/caches/{cid}"},

@@ -9,10 +9,19 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse, Response
 
 from cloudgraph_service.errors import shown
-from cloudgraph_service.protocol import RENDER_JOB, is_job_id, render_path
+from cloudgraph_service.protocol import RenderJob, is_job_id, render_path
 
 from ..deps import QueueDep, RedisDep, SettingsDep, VolumesDep
-from ..jobs import await_job, check_capacity, describe, enqueue, fetch, status_of, worker_health
+from ..jobs import (
+    await_job,
+    check_capacity,
+    describe,
+    enqueue,
+    fetch,
+    radiance_key_of,
+    status_of,
+    worker_health,
+)
 from ..schemas import CacheCreate, JobStatus, RenderCreate
 from ..validation import check_scene
 from .caches import ensure_cache
@@ -48,11 +57,12 @@ def _render(body: RenderCreate, redis, queue, settings, volumes):
     scene = body.scene
     check_scene(scene, settings, volumes)
     check_capacity(queue, settings)
-    depends, ready = None, True
+    depends, ready, radiance_key = None, True, None
     if body.integrator == "graph":
         pre = precompute_for(scene, body.quality, redis, queue, settings, volumes)
         ready = status_of(pre) == JobStatus.finished
         depends = None if ready else pre
+        radiance_key = radiance_key_of(pre) if ready else None  # handed down: found once
     small = scene.camera.width * scene.camera.height <= settings.SYNC_MAX_PIXELS
     if ready and small and _free_workers(queue, settings) < 1:
         raise HTTPException(
@@ -60,17 +70,20 @@ def _render(body: RenderCreate, redis, queue, settings, volumes):
         )
     job_id = f"render-{uuid.uuid4().hex}"
     out = render_path(settings.outputs_dir, job_id, body.format)
+    payload = RenderJob(
+        scene=scene.model_dump(mode="json"),
+        integrator=body.integrator,
+        estimator=body.estimator,
+        quality=body.quality,
+        format=body.format,
+        exposure=body.exposure,
+        out=str(out),
+        radiance_key=radiance_key,
+    )
     job = enqueue(
         queue,
         settings,
-        RENDER_JOB,
-        scene.model_dump(),
-        body.integrator,
-        body.format,
-        body.quality,
-        body.exposure,
-        str(out),
-        body.estimator,
+        payload,
         job_id=job_id,
         kind="render",
         depends_on=depends,
