@@ -1,8 +1,11 @@
-"""The API's own errors, each mapped to one status code by its type (``main.create_app``)."""
+"""The API's own errors, each mapped to one status code by its type (``main.create_app``), and
+the one body every error answer has (:class:`ErrorPublic`), documented route by route
+(:func:`error_responses`)."""
 
 from __future__ import annotations
 
 from fastapi import HTTPException
+from pydantic import BaseModel, Field
 
 
 class InputError(Exception):
@@ -18,3 +21,51 @@ class BodyTooLarge(HTTPException):
 
     def __init__(self, detail: str):
         super().__init__(413, detail)
+
+
+class ErrorPublic(BaseModel):
+    """The body of every error answer, 422 included: one sentence for a person, naming the field
+    or the id at fault and what to do about it."""
+
+    detail: str = Field(examples=["scene.camera: image 8192x8192 is over the limit of 2048 pixels a side"])
+
+
+def _seconds(why: str) -> dict:
+    return {"description": why, "schema": {"type": "integer", "minimum": 0}}
+
+
+#: What each error status means on this API, and the headers it comes with. (A method that a
+#: path does not take is 405 with ``Allow``, from ``main.AllowMethods``: no operation to document.)
+ERRORS: dict[int, tuple[str, dict]] = {
+    400: ("The body cannot be parsed: JSON that is not UTF-8, or a broken multipart form", {}),
+    401: (
+        "Missing or wrong API key (when the service has keys): send 'Authorization: Bearer <key>'",
+        {"WWW-Authenticate": {"description": "Bearer", "schema": {"type": "string"}}},
+    ),
+    404: ("No such resource; the message names the id", {}),
+    409: ("The resource exists but is not ready for this (its job has not finished)", {}),
+    410: ("The resource's file is gone (evicted); ask for it again", {}),
+    413: ("The request body is over its limit (MAX_UPLOAD_MB for uploads, MAX_BODY_KB for JSON)", {}),
+    422: ("A field is missing, malformed or out of its range; the message names it", {}),
+    429: (
+        "The render queue is full",
+        {"Retry-After": _seconds("seconds to wait before trying again")},
+    ),
+    503: (
+        "The job store (Redis) is not reachable",
+        {"Retry-After": _seconds("seconds to wait before trying again")},
+    ),
+}
+
+
+def error_responses(*codes: int, about: dict[int, str] | None = None) -> dict[int, dict]:
+    """The OpenAPI ``responses`` of a route's error answers: each an :class:`ErrorPublic` body,
+    described by :data:`ERRORS` or, for this route, by ``about``."""
+    about = about or {}
+    out = {}
+    for code in codes:
+        why, headers = ERRORS[code]
+        out[code] = {"model": ErrorPublic, "description": about.get(code, why)}
+        if headers:
+            out[code]["headers"] = headers
+    return out

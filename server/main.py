@@ -4,16 +4,20 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import re
+from collections.abc import Callable
 from pathlib import Path
 
 from fastapi import APIRouter, Depends, FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.openapi.utils import get_openapi
+from fastapi.responses import JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 from redis import Redis
 from redis.exceptions import ConnectionError as RedisConnectionError
 from redis.exceptions import TimeoutError as RedisTimeoutError
 from rq import Queue
+from starlette.routing import compile_path
 
 from cloudgraph.errors import CloudgraphError
 from cloudgraph.store import VolumeStore
@@ -21,7 +25,7 @@ from cloudgraph_service.errors import scrub
 from cloudgraph_service.settings import Settings
 
 from .deps import require_key
-from .errors import BodyTooLarge, InputError
+from .errors import BodyTooLarge, InputError, error_responses
 from .routes import animations, caches, health, jobs, renders, volumes
 
 log = logging.getLogger("cloudgraph.api")
@@ -118,13 +122,87 @@ class LimitBody:
         await self.app(scope, counted, send)
 
 
+class AllowMethods:
+    """Answers a method that a path does not take with 405 and ``Allow``, and OPTIONS with 204 and
+    ``Allow``: the methods that the OpenAPI document gives the path. Without it the web page's
+    mount at / would take such requests and answer for the API."""
+
+    def __init__(self, app, openapi: Callable[[], dict]):
+        self.app, self.openapi = app, openapi
+        self.paths: list[tuple[re.Pattern, set[str]]] | None = None
+
+    def allowed(self, scope) -> tuple[bool, set[str]]:
+        """(whether this path takes this method, the methods it takes; none: not an API path)."""
+        if self.paths is None:  # the document is complete once the app serves requests
+            paths = self.openapi()["paths"]
+            self.paths = [(compile_path(p)[0], {m.upper() for m in ops}) for p, ops in paths.items()]
+        for regex, methods in self.paths:
+            if regex.match(scope["path"]):
+                return scope["method"] in methods, methods
+        return False, set()
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        taken, methods = self.allowed(scope)
+        if taken or not methods:
+            return await self.app(scope, receive, send)
+        allow = ", ".join(sorted(methods))
+        method = scope["method"]
+        if method == "OPTIONS":
+            response = Response(status_code=204, headers={"Allow": f"{allow}, OPTIONS"})
+        else:
+            response = JSONResponse(
+                {"detail": f"{method} is not allowed on {scope['path']}; it takes {allow}"},
+                status_code=405,
+                headers={"Allow": allow},
+            )
+        await response(scope, receive, send)
+
+
+def _referenced(node, found: set[str]) -> set[str]:
+    """The component schema names that ``node`` (part of an OpenAPI document) refers to."""
+    if isinstance(node, dict):
+        ref = node.get("$ref", "")
+        if ref.startswith("#/components/schemas/"):
+            found.add(ref.rsplit("/", 1)[1])
+        for v in node.values():
+            _referenced(v, found)
+    elif isinstance(node, list):
+        for v in node:
+            _referenced(v, found)
+    return found
+
+
+def openapi_document(app: FastAPI) -> dict:
+    """FastAPI's OpenAPI document, less the component schemas that nothing refers to (as the
+    form FastAPI derives from the upload's signature, which that route describes itself)."""
+    if app.openapi_schema is None:
+        doc = get_openapi(
+            title=app.title, version=app.version, description=app.description, routes=app.routes
+        )
+        schemas = doc.get("components", {}).get("schemas", {})
+        used = _referenced(doc["paths"], set())
+        while True:  # what the used schemas refer to is used too
+            more = _referenced([schemas[n] for n in used if n in schemas], set()) - used
+            if not more:
+                break
+            used |= more
+        for name in set(schemas) - used:
+            del schemas[name]
+        app.openapi_schema = doc
+    return app.openapi_schema
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings.from_env()
     app = FastAPI(
         title="cloudgraph",
         version="1",
         description="Graph radiance cache rendering of clouds and smoke. See api.md.",
+        generate_unique_id_function=lambda route: route.name,  # client functions: upload_volume, ...
     )
+    app.openapi = lambda: openapi_document(app)
     app.state.settings = settings
     app.state.redis = Redis.from_url(settings.REDIS_URL, socket_timeout=10)
     app.state.queue = Queue(settings.QUEUE, connection=app.state.redis)
@@ -159,9 +237,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         )
 
     app.add_middleware(LimitBody, settings=settings)
+    app.add_middleware(AllowMethods, openapi=app.openapi)
     app.add_middleware(CountRequests)
 
-    v1 = APIRouter(prefix="/v1", dependencies=[Depends(require_key)])
+    v1 = APIRouter(prefix="/v1", dependencies=[Depends(require_key)], responses=error_responses(401))
     for r in (volumes, caches, renders, animations, jobs):
         v1.include_router(r.router)
     app.include_router(v1)

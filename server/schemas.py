@@ -99,3 +99,66 @@ class JobPublic(BaseModel):
     result: dict | None = None
     error: str | None = None
     created_at: float | None = None
+
+
+class AnimationPublic(JobPublic):
+    """An animation's job, with the frames rendered so far."""
+
+    frames: int = Field(description="frames asked for")
+    frames_done: list[int] = Field(description="indices of the frames already rendered")
+
+
+class GridPublic(BaseModel):
+    """One grid of an uploaded volume. A float grid of a .vdb (and a .vol's one grid) carries
+    the densest value and voxel size that the density_scale limit is computed from."""
+
+    name: str
+    type: str = Field(description="value type: 'float' and 'half' grids hold densities")
+    dims: list[int] | None = Field(None, description="active bounding box size, voxels per axis")
+    value_max: float | None = None
+    voxel_size: list[float] | None = Field(None, description="world units per voxel, per axis")
+
+
+class VolumePublic(BaseModel):
+    """An uploaded volume; its id is the sha256 of the file's bytes."""
+
+    id: str = Field(pattern="^[0-9a-f]{64}$")
+    filename: str
+    bytes: int
+    format: Literal["vdb", "vol"]
+    created: float = Field(description="upload time, seconds since the epoch")
+    grids: list[GridPublic]
+    grid: str = Field(description="the density grid scenes use when they name none")
+    index_bbox: list[list[int]] = Field(description="[[x, y, z] min, [x, y, z] max], index space")
+    world_bbox: list[list[float]] = Field(description="[[x, y, z] min, [x, y, z] max], world units")
+    voxel_size: list[float]
+    value_range: list[float] = Field(description="[min, max] of the density grid")
+    active_fraction: float = Field(description="fraction of the bounding box's voxels above 0")
+
+
+class CachePublic(BaseModel):
+    """A radiance cache and its precompute: ``keys`` and ``stats`` once it has finished."""
+
+    id: str = Field(pattern="^[0-9a-f]{32}$")
+    status: JobStatus
+    stage: str | None = None
+    fraction: float = 0.0
+    job: str = Field(description="the precompute job's URL: /v1/jobs/cache-<id>")
+    keys: dict | None = None
+    stats: dict | None = None
+    error: str | None = None
+
+
+class HealthPublic(BaseModel):
+    status: Literal["ok"]
+
+
+class ReadyPublic(BaseModel):
+    status: Literal["ready"]
+    workers: int = Field(description="live workers")
+    stuck: int = Field(description="live workers past their job's budget")
+
+
+def binary(*media_types: str) -> dict:
+    """The OpenAPI ``content`` of a response that is a file's bytes, in any of ``media_types``."""
+    return {m: {"schema": {"type": "string", "format": "binary"}} for m in media_types}

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 from fastapi import APIRouter, HTTPException
-from fastapi.responses import FileResponse, JSONResponse
+from fastapi.responses import FileResponse, JSONResponse, Response
 
 from cloudgraph.scene import CameraSpec
 from cloudgraph_service.errors import shown
@@ -21,9 +21,9 @@ from cloudgraph_service.protocol import (
 )
 
 from ..deps import QueueDep, RedisDep, SettingsDep, VolumesDep
-from ..errors import InputError
+from ..errors import InputError, error_responses
 from ..jobs import check_capacity, describe, enqueue, fetch, radiance_key_of, status_of
-from ..schemas import AnimationCreate, JobStatus
+from ..schemas import AnimationCreate, AnimationPublic, JobPublic, JobStatus, binary
 from ..validation import MAX_COORD, MIN_RADIUS, check_camera, check_scene
 from .renders import precompute_for
 
@@ -101,7 +101,16 @@ def check_animation(body: AnimationCreate, settings, volumes) -> None:
         raise InputError("orbit.radius", f"must be within [{MIN_RADIUS:g}, {MAX_COORD:g}], got {radius:g}")
 
 
-@router.post("", status_code=202)
+@router.post(
+    "",
+    status_code=202,
+    response_model=JobPublic,
+    response_description="The animation's job, queued",
+    responses={
+        202: {"headers": {"Location": {"description": "the job's URL", "schema": {"type": "string"}}}},
+        **error_responses(400, 404, 413, 422, 429, 503, about={404: "No volume with that id"}),
+    },
+)
 def create_animation(
     body: AnimationCreate, redis: RedisDep, queue: QueueDep, settings: SettingsDep, volumes: VolumesDep
 ):
@@ -167,7 +176,7 @@ def _anim(redis, anim_id: str):
     return job
 
 
-@router.get("/{anim_id}")
+@router.get("/{anim_id}", response_model=AnimationPublic, responses=error_responses(404, 422, 503))
 def get_animation(anim_id: str, redis: RedisDep) -> dict:
     job = _anim(redis, anim_id)
     d = describe(job).model_dump(mode="json")
@@ -178,7 +187,14 @@ def get_animation(anim_id: str, redis: RedisDep) -> dict:
     return d
 
 
-@router.get("/{anim_id}/video")
+@router.get(
+    "/{anim_id}/video",
+    response_class=Response,
+    responses={
+        200: {"description": "The MP4", "content": binary("video/mp4")},
+        **error_responses(404, 409, 422, 503, about={409: "The animation has not finished"}),
+    },
+)
 def get_video(anim_id: str, redis: RedisDep):
     job = _anim(redis, anim_id)
     if status_of(job) != JobStatus.finished:
@@ -189,7 +205,16 @@ def get_video(anim_id: str, redis: RedisDep):
     )
 
 
-@router.get("/{anim_id}/frames/{index}")
+@router.get(
+    "/{anim_id}/frames/{index}",
+    response_class=Response,
+    responses={
+        200: {"description": "The frame", "content": binary("image/png")},
+        **error_responses(
+            404, 409, 422, 503, about={404: "No such animation, or no such frame", 409: "Not rendered yet"}
+        ),
+    },
+)
 def get_frame(anim_id: str, index: int, redis: RedisDep):
     job = _anim(redis, anim_id)
 

@@ -13,14 +13,19 @@ from cloudgraph_service.errors import shown
 from cloudgraph_service.protocol import LOCK_S, PrecomputeJob, cancel_key, lock_key
 
 from ..deps import QueueDep, RedisDep, SettingsDep, VolumesDep
+from ..errors import error_responses
 from ..jobs import cache_id, check_capacity, describe, enqueue, fetch, status_of
-from ..schemas import CacheCreate, JobStatus
+from ..schemas import CacheCreate, CachePublic, JobStatus, binary
 from ..validation import check_cache_parts
 
 router = APIRouter(prefix="/caches", tags=["caches"])
 CACHE_ID = re.compile(r"[0-9a-f]{32}")
 #: A field is content-addressed by its radiance key: it never changes under its URL.
 IMMUTABLE = "public, max-age=31536000, immutable"
+FIELD_HEADERS = {
+    "ETag": {"description": "the radiance key, quoted", "schema": {"type": "string"}},
+    "Cache-Control": {"description": IMMUTABLE, "schema": {"type": "string"}},
+}
 
 
 def ensure_cache(body: CacheCreate, redis, queue, settings, volumes, prefix: str = "") -> tuple[str, Job]:
@@ -83,7 +88,19 @@ def _cache_job(redis, cid: str) -> Job:
     return job
 
 
-@router.post("")
+@router.post(
+    "",
+    response_model=CachePublic,
+    response_description="The cache is ready",
+    responses={
+        202: {
+            "model": CachePublic,
+            "description": "The precompute is queued or running",
+            "headers": {"Location": {"description": "the precompute's URL", "schema": {"type": "string"}}},
+        },
+        **error_responses(400, 404, 413, 422, 429, 503, about={404: "No volume with that id"}),
+    },
+)
 def create_cache(
     body: CacheCreate, redis: RedisDep, queue: QueueDep, settings: SettingsDep, volumes: VolumesDep
 ):
@@ -95,12 +112,31 @@ def create_cache(
     return JSONResponse(out, status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
 
 
-@router.get("/{cid}")
+@router.get("/{cid}", response_model=CachePublic, responses=error_responses(404, 422, 503))
 def get_cache(cid: str, redis: RedisDep) -> dict:
     return cache_body(cid, _cache_job(redis, cid))
 
 
-@router.get("/{cid}/field")
+@router.get(
+    "/{cid}/field",
+    response_class=Response,
+    responses={
+        200: {
+            "description": "The radiance field, gzip-compressed (Content-Encoding: gzip)",
+            "content": binary("application/octet-stream"),
+            "headers": FIELD_HEADERS,
+        },
+        304: {"description": "The client's copy (If-None-Match) is the field", "headers": FIELD_HEADERS},
+        **error_responses(
+            404,
+            409,
+            410,
+            422,
+            503,
+            about={409: "The precompute has not finished", 410: "The field was evicted: POST it again"},
+        ),
+    },
+)
 def get_field(cid: str, request: Request, redis: RedisDep, settings: SettingsDep):
     """The cache's radiance field (api.md, "The radiance field"): gzip-compressed bytes sent as
     they are stored, with ``Content-Encoding: gzip``; ETag is the radiance key, cached for ever."""

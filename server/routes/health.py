@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 from fastapi import APIRouter, HTTPException, Request
-from fastapi.responses import Response
+from fastapi.responses import PlainTextResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, Counter, Gauge, generate_latest
 
+from ..errors import error_responses
 from ..jobs import worker_health
+from ..schemas import HealthPublic, ReadyPublic
 
 router = APIRouter(tags=["health"])
 
@@ -22,13 +24,17 @@ WORKERS = Gauge("cloudgraph_workers", "live workers", registry=REGISTRY)
 STUCK = Gauge("cloudgraph_workers_stuck", "live workers past their job's budget", registry=REGISTRY)
 
 
-@router.get("/healthz")
+@router.get("/healthz", response_model=HealthPublic)
 def healthz() -> dict:
     """The API process is up."""
     return {"status": "ok"}
 
 
-@router.get("/readyz")
+@router.get(
+    "/readyz",
+    response_model=ReadyPublic,
+    responses=error_responses(503, about={503: "Redis is not reachable, or no worker is alive and free"}),
+)
 def readyz(request: Request) -> dict:
     """Redis answers and at least one worker is alive and not stuck past its job's budget."""
     redis = request.app.state.redis
@@ -44,7 +50,11 @@ def readyz(request: Request) -> dict:
     return {"status": "ready", "workers": live, "stuck": stuck}
 
 
-@router.get("/metrics")
+@router.get(
+    "/metrics",
+    response_class=PlainTextResponse,
+    response_description="Prometheus text exposition format",
+)
 def metrics(request: Request) -> Response:
     queue = request.app.state.queue
     try:

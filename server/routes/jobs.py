@@ -7,11 +7,12 @@ import json
 
 from fastapi import APIRouter, HTTPException
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import StreamingResponse
+from fastapi.responses import Response, StreamingResponse
 
 from cloudgraph_service.errors import shown
 
 from ..deps import RedisDep
+from ..errors import error_responses
 from ..jobs import cancel, describe, fetch
 from ..schemas import JobPublic, JobStatus
 
@@ -26,12 +27,22 @@ def _job(redis, job_id: str):
     return job
 
 
-@router.get("/{job_id}", response_model=JobPublic)
+@router.get("/{job_id}", response_model=JobPublic, responses=error_responses(404, 422, 503))
 def get_job(job_id: str, redis: RedisDep) -> JobPublic:
     return describe(_job(redis, job_id))
 
 
-@router.get("/{job_id}/events")
+@router.get(
+    "/{job_id}/events",
+    response_class=Response,
+    responses={
+        200: {
+            "description": "``event: progress`` and ``event: end``, each with a JobPublic as ``data``",
+            "content": {"text/event-stream": {"schema": {"type": "string"}}},
+        },
+        **error_responses(404, 422, 503),
+    },
+)
 async def job_events(job_id: str, redis: RedisDep):
     """Server-sent events: ``progress`` on every change, then one ``end`` with the final state."""
     job = _job(redis, job_id)
@@ -57,7 +68,11 @@ async def job_events(job_id: str, redis: RedisDep):
     )
 
 
-@router.post("/{job_id}/cancel", response_model=JobPublic)
+@router.post(
+    "/{job_id}/cancel",
+    response_model=JobPublic,
+    responses=error_responses(404, 409, 413, 422, 503, about={409: "The job has already ended"}),
+)
 def cancel_job(job_id: str, redis: RedisDep) -> JobPublic:
     """Cancels a queued or running job (and an animation's frame jobs)."""
     job = _job(redis, job_id)

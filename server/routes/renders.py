@@ -12,6 +12,7 @@ from cloudgraph_service.errors import shown
 from cloudgraph_service.protocol import RenderJob, is_job_id, render_path
 
 from ..deps import QueueDep, RedisDep, SettingsDep, VolumesDep
+from ..errors import error_responses
 from ..jobs import (
     await_job,
     check_capacity,
@@ -22,12 +23,14 @@ from ..jobs import (
     status_of,
     worker_health,
 )
-from ..schemas import CacheCreate, JobStatus, RenderCreate
+from ..schemas import CacheCreate, JobPublic, JobStatus, RenderCreate, binary
 from ..validation import check_scene
 from .caches import ensure_cache
 
 router = APIRouter(prefix="/renders", tags=["renders"])
 MEDIA = {"png": "image/png", "exr": "image/x-exr"}
+IMAGE = binary(*MEDIA.values())
+JOB_ID = {"X-Job-Id": {"description": "the render's job", "schema": {"type": "string"}}}
 
 
 def precompute_for(scene, quality, redis, queue, settings, volumes):
@@ -93,7 +96,38 @@ def _render(body: RenderCreate, redis, queue, settings, volumes):
     return job, ready and small
 
 
-@router.post("")
+@router.post(
+    "",
+    response_class=Response,
+    responses={
+        200: {
+            "description": "The image (format png or exr), rendered at once",
+            "content": IMAGE,
+            "headers": {
+                **JOB_ID,
+                "X-Render-Seconds": {"description": "seconds the render took", "schema": {"type": "number"}},
+            },
+        },
+        202: {
+            "model": JobPublic,
+            "description": "The render is queued (after its cache's precompute, if that is not ready)",
+            "headers": {"Location": {"description": "the job's URL", "schema": {"type": "string"}}},
+        },
+        **error_responses(
+            400,
+            404,
+            413,
+            422,
+            429,
+            503,
+            about={
+                404: "No volume with that id",
+                422: "A field out of its range, or a render that failed (X-Job-Id names it)",
+                503: "No worker is free to render it now, or the job store (Redis) is not reachable",
+            },
+        ),
+    },
+)
 async def create_render(
     request: Request,
     body: RenderCreate,
@@ -125,7 +159,16 @@ async def create_render(
     )
 
 
-@router.get("/{job_id}/image")
+@router.get(
+    "/{job_id}/image",
+    response_class=Response,
+    responses={
+        200: {"description": "The image, png or exr as the render asked", "content": IMAGE},
+        **error_responses(
+            404, 409, 410, 422, 503, about={409: "The render has not finished", 410: "The image was evicted"}
+        ),
+    },
+)
 def render_image(job_id: str, redis: RedisDep, settings: SettingsDep):
     job = fetch(redis, job_id) if is_job_id(job_id) else None
     if job is None or job.meta.get("kind") != "render":

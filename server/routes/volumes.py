@@ -18,10 +18,31 @@ from fastapi.responses import JSONResponse
 from cloudgraph_service.errors import scrub, shown
 
 from ..deps import SettingsDep, VolumesDep
+from ..errors import error_responses
+from ..schemas import VolumePublic
 
 router = APIRouter(prefix="/volumes", tags=["volumes"])
 log = logging.getLogger("cloudgraph.api")
 ROOT = Path(__file__).resolve().parents[2]
+LOCATION = {"Location": {"description": "the volume's URL", "schema": {"type": "string"}}}
+#: The upload's body as OpenAPI has it. The route takes ``file`` as optional so that a form
+#: without it is answered in words (422); the document says what a client must send. (``$ref``
+#: None drops the schema FastAPI derives from the signature.)
+UPLOAD_BODY = {
+    "required": True,
+    "content": {
+        "multipart/form-data": {
+            "schema": {
+                "$ref": None,
+                "type": "object",
+                "required": ["file"],
+                "properties": {
+                    "file": {"type": "string", "format": "binary", "description": "a .vdb or .vol file"}
+                },
+            }
+        }
+    },
+}
 
 
 def _spool(file, folder: Path, limit: int) -> tuple[str, int]:
@@ -54,7 +75,20 @@ async def _check(tmp: str, name: str, timeout: float) -> dict:
         return {"error": f"{name} cannot be read as a volume (corrupt, or too large to read)", "status": 422}
 
 
-@router.post("", status_code=201)
+@router.post(
+    "",
+    status_code=201,
+    response_model=VolumePublic,
+    response_description="The volume, stored",
+    responses={
+        201: {"headers": LOCATION},
+        200: {"model": VolumePublic, "description": "The same bytes were stored before", "headers": LOCATION},
+        **error_responses(
+            400, 413, 422, about={422: "No file, an empty one, or one that is not a readable volume"}
+        ),
+    },
+    openapi_extra={"requestBody": UPLOAD_BODY},
+)
 async def upload_volume(
     request: Request, file: UploadFile | None = None, *, settings: SettingsDep, volumes: VolumesDep
 ):
@@ -84,12 +118,12 @@ async def upload_volume(
     )
 
 
-@router.get("")
+@router.get("", response_model=list[VolumePublic])
 def list_volumes(volumes: VolumesDep) -> list[dict]:
     return volumes.list()
 
 
-@router.get("/{volume_id}")
+@router.get("/{volume_id}", response_model=VolumePublic, responses=error_responses(404, 422))
 def get_volume(volume_id: str, volumes: VolumesDep) -> dict:
     info = volumes.info(volume_id)
     if info is None:
@@ -97,7 +131,7 @@ def get_volume(volume_id: str, volumes: VolumesDep) -> dict:
     return info
 
 
-@router.delete("/{volume_id}", status_code=204)
+@router.delete("/{volume_id}", status_code=204, responses=error_responses(404, 422))
 def delete_volume(volume_id: str, volumes: VolumesDep) -> None:
     if not volumes.delete(volume_id):
         raise HTTPException(404, f"no volume with id {shown(volume_id)}")
