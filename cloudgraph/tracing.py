@@ -209,6 +209,16 @@ def exponential_segment(dtau: mi.Float, v0, v1):
     return T, v0 * (1.0 - T) + (v1 - v0) * w1
 
 
+def single_segment(dtau: mi.Float, tau0: mi.Float, tau1: mi.Float) -> mi.Float:
+    """int_0^dtau exp(-x) exp(-tau(x)) dx for tau_light linear in optical depth x from tau0 to
+    tau1 (exact in a homogeneous medium): with a = dtau + tau1 - tau0,
+    = dtau (exp(-tau0) - exp(-tau1 - dtau)) / a, and dtau exp(-tau0) (1 - a / 2) as a -> 0."""
+    a = dtau + tau1 - tau0
+    small = dr.abs(a) < 1e-4
+    ratio = (dr.exp(-tau0) - dr.exp(-tau1 - dtau)) / dr.select(small, 1.0, a)
+    return dtau * dr.select(small, dr.exp(-tau0) * (1.0 - 0.5 * a), ratio)
+
+
 def uniform_sphere(rng: mi.PCG32) -> mi.Vector3f:
     """Isotropic directions."""
     return mi.warp.square_to_uniform_sphere(mi.Point2f(rng.next_float32(), rng.next_float32()))

@@ -52,12 +52,16 @@ from ..tracing import (
     linear_texture,
     ratio_tracking,
     sample_collision,
+    single_segment,
     step_length,
     uniform_sphere,
 )
 
 #: The field march stops where the transmittance from the camera falls below this.
 FIELD_TR_MIN = 1e-3
+#: Midpoints of the field march's integral of sigma_t to the box where the light enters it
+#: (_tau_light; the page's shader takes as many).
+FIELD_EDGE_SAMPLES = 3
 
 
 @dataclass
@@ -67,25 +71,33 @@ class FieldTextures:
     Attributes:
         tau: optical depth to the light, 1 channel; ms: radiance after the first scattering, 3
             channels; both trilinear, clamped, over the unit cube.
-        step: march step, world units.
+        step: march step, world units; max_dtau: a step's optical depth at most (at its block's
+            majorant); edge: within this of where the light enters the box, single scattering
+            integrates sigma_t to it (world units; field.py's header, read by the page too).
         max_steps: iteration cap of the march: a ray takes each step and skips each block once.
     """
 
     tau: object
     ms: object
     step: float
+    max_dtau: float
+    edge: float
     max_steps: int
 
     @classmethod
     def from_field(cls, field) -> FieldTextures:
-        step = float(field.meta["step"])
+        step, max_dtau = float(field.meta["step"]), float(field.meta["max_dtau"])
         diag = float(np.linalg.norm(np.subtract(*field.meta["world_bbox"][::-1])))
         blocks = sum(-(-n // BLOCK) for n in field.sigma_t.shape)
+        # the longest march: every segment at most max_dtau of the medium's majorant
+        dense = float(field.majorant.max(initial=0.0)) * diag / max_dtau
         return cls(
             tau=linear_texture(field.tau_light),
             ms=linear_texture(field.radiance_ms),
             step=step,
-            max_steps=int(2 * (diag / step + 3 * blocks) + 16),
+            max_dtau=max_dtau,
+            edge=float(field.meta["edge"]),
+            max_steps=int(2 * (diag / step + dense + 3 * blocks) + 16),
         )
 
 
@@ -121,6 +133,8 @@ class GraphIntegrator(mi.SamplingIntegrator):
         self.medium, self.grid, self.field, self.estimator = medium, grid, field, estimator
         self.albedo = tuple(float(a) for a in albedo)
         self.to_light = tuple(-float(c) for c in np.asarray(light_dir) / np.linalg.norm(light_dir))
+        # toward the light in the unit cube, per world unit
+        self.light_unit = tuple(float(c[0]) for c in medium.world_to_unit @ mi.Vector3f(*self.to_light))
         self.irradiance = tuple(float(e) for e in np.broadcast_to(np.asarray(irradiance, float), (3,)))
         self.eps2 = (0.05 * node_radius) ** 2  # keeps w_a finite at a node's centre
         self.step = float(step) if step else 0.5 * node_radius
@@ -173,48 +187,73 @@ class GraphIntegrator(mi.SamplingIntegrator):
             active &= (t < t_end) & (Tr > 1e-4)
         return L
 
-    def _field_in(self, p, active):
-        """(sigma_t, L_in) at world points p: L_in = E exp(-tau_light) / 4pi + L_ms (field.py)."""
+    def _field_at(self, p, active):
+        """(sigma_t, tau_light, L_ms) at world points p (field.py)."""
         f = self.field
         pu = self.medium.world_to_unit @ mi.Point3f(p)
         ms = f.ms.eval(pu, active)
-        L_in = mi.Color3f(*self.irradiance) / (4.0 * dr.pi) * dr.exp(-f.tau.eval(pu, active)[0])
         sigma_t = self.medium.texture.eval(pu, active)[0] * self.medium.scale
-        return sigma_t, L_in + mi.Color3f(ms[0], ms[1], ms[2])
+        return sigma_t, self._tau_light(p, pu, active), mi.Color3f(ms[0], ms[1], ms[2])
+
+    def _tau_light(self, p, pu, active):
+        """Optical depth from world points p (pu in the unit cube) to the light: the grid's
+        tau_light, or within the field's ``edge`` of where the light enters the medium box the
+        integral of sigma_t itself (FIELD_EDGE_SAMPLES midpoints): the grid's values are at
+        texel centres, and half a voxel in from the box's faces its texture clamps. A point on
+        the box's surface (a camera ray's entry) counts as inside."""
+        lu = mi.Vector3f(*self.light_unit)
+        pc = dr.clip(pu, 0.0, 1.0)
+        # (the light never leaves through the faces it runs parallel to)
+        te = dr.select(dr.abs(lu) < 1e-9, 1e30, dr.maximum(-pc / lu, (1.0 - pc) / lu))
+        t_exit = dr.maximum(dr.minimum(dr.minimum(te.x, te.y), te.z), 0.0)  # world units
+        edge = t_exit <= self.field.edge
+        tau = mi.Float(0.0)  # Optical depth to the box's face
+        for k in range(FIELD_EDGE_SAMPLES):  # a fixed quadrature, unrolled into the kernel
+            q = pc + ((k + 0.5) / FIELD_EDGE_SAMPLES) * t_exit * lu
+            tau += self.medium.texture.eval(q, active & edge)[0]
+        grid = self.field.tau.eval(pu, active & ~edge)[0]
+        return dr.select(edge, tau * self.medium.scale * t_exit / FIELD_EDGE_SAMPLES, grid)
 
     @dr.syntax
     def _field(self, o, d, rng, active):
         # Eq. 4.24 through the baked field, segment by segment in closed form (an exponential
-        # integrator): sigma_t is taken as the mean of its end values over a segment and L_in as
-        # linear in optical depth between its end values L0, L1 (tracing.exponential_segment):
-        #   int_seg T_r sigma_s L_in dt = T_r(t) albedo int_0^dtau e^-x L_in(x) dx.
+        # integrator), with sigma_t the mean of its end values over a segment:
+        #   int_seg T_r sigma_s L_in dt = T_r(t) albedo int_0^dtau e^-x L_in(x) dx,
+        #   L_in = E exp(-tau_light) / 4pi + L_ms.
+        # Single scattering with tau_light linear in optical depth between the segment's ends
+        # (single_segment: exact in a homogeneous medium, where exp(-tau_light) changes many
+        # times over in one step of a dense cloud), L_ms linear (tracing.exponential_segment).
         # Each step evaluates one new end point; one jitter per ray shifts the step grid against
         # banding.
         f = self.field
         t, t_end = self.medium.box_interval(o, d)
         albedo = mi.Color3f(*self.albedo)
+        E = mi.Color3f(*self.irradiance) / (4.0 * dr.pi)  # isotropic phase
         first = (1.0 - rng.next_float32()) * f.step  # one jitter per ray: the first segment's length
         L = mi.Color3f(0.0)  # Radiance accumulator
         Tr = mi.Float(1.0)  # Transmittance from the camera
         active = active & (t < t_end)
         t = dr.select(active, t, 0.0)  # rays that miss may have no finite entry point
-        sigma0, L0 = self._field_in(o + t * d, active)  # values at the segment's start
+        sigma0, tau0, ms0 = self._field_at(o + t * d, active)  # values at the segment's start
         steps = mi.UInt32(0)  # Iteration cap: a ray takes each step and skips each block once
         started = mi.Bool(False)  # Whether the ray has reached a block with medium (and jittered)
         while dr.hint(active, label="field_march"):
             # Empty-space skipping: a block without density is crossed in one step
             sigma_maj, t_leave = self.medium.block(o, d, t, active)
             empty = sigma_maj <= 0.0
-            # the jitter applies where the medium begins
-            dt = step_length(empty, t, t_leave, t_end, dr.select(started, f.step, first), 1e-3 * f.step)
-            sigma1, L1 = self._field_in(o + (t + dt) * d, active)
+            # the jitter applies where the medium begins; in optically thick blocks steps of at
+            # most max_dtau at the block's majorant
+            step = dr.minimum(f.step, f.max_dtau / dr.maximum(sigma_maj, 1e-12))
+            jittered = dr.select(started, step, first * step / f.step)
+            dt = step_length(empty, t, t_leave, t_end, jittered, 1e-3 * f.step)
+            sigma1, tau1, ms1 = self._field_at(o + (t + dt) * d, active)
             # One segment (nothing to add across an empty block)
             dtau = dr.select(empty, 0.0, 0.5 * (sigma0 + sigma1) * dt)
-            seg_Tr, seg_L = exponential_segment(dtau, L0, L1)
-            L += Tr * albedo * seg_L
+            seg_Tr, seg_ms = exponential_segment(dtau, ms0, ms1)
+            L += Tr * albedo * (E * single_segment(dtau, tau0, tau1) + seg_ms)
             Tr *= seg_Tr
             t += dt
-            sigma0, L0 = sigma1, L1
+            sigma0, tau0, ms0 = sigma1, tau1, ms1
             steps += 1
             started |= ~empty
             active &= (t < t_end) & (Tr > FIELD_TR_MIN) & (steps < f.max_steps)

@@ -16,7 +16,7 @@ LAYERS: list[set[str]] = [
     # foundations: errors, shared lists, atomic writes, the package (format version)
     {"cloudgraph", "integrators", "errors", "options", "files", "chunks", "graph", "transport"},
     # the scene spec, images and metrics, the VDB header, the graph file's format
-    {"vdb", "scene", "image", "metrics", "graph_file"},
+    {"vdb", "scene", "image", "metrics", "graph_file", "light_depth"},
     {"volume"},
     # walks of the medium, Mitsuba scenes, parameters, the volume store, test volumes
     {"tracing", "mitsuba_scene", "params", "store", "procedural"},

@@ -31,7 +31,9 @@ function vec(v, n, what) {
  * Decodes a field body (an ArrayBuffer, already gunzipped by fetch).
  *
  * Returns { header, unitToWorld (16 numbers, row-major), worldToUnit (16, row-major),
- * worldBbox, light: { direction, irradiance }, albedo, step (world units),
+ * worldBbox, light: { direction, irradiance }, albedo, step (world units), maxDtau (a
+ * segment's optical depth at most), edge (world units: where the light enters the box within
+ * this, tau_light is integrated from sigma_t),
  * arrays: { name: { data: Uint16Array of float16 bits, shape, scale } }, bytes }.
  * Throws FieldError naming what is wrong.
  */
@@ -80,6 +82,9 @@ export function decodeField(buffer) {
   }
   const step = Number(header.step);
   if (!(step > 0)) throw new FieldError("the field's header has no valid step");
+  const maxDtau = Number(header.max_dtau);
+  const edge = Number(header.edge);
+  if (!(maxDtau > 0) || !(edge >= 0)) throw new FieldError("the field's header has no valid max_dtau or edge");
   const light = header.light || {};
   return {
     header,
@@ -89,6 +94,8 @@ export function decodeField(buffer) {
     light: { direction: vec(light.direction, 3, "light.direction"), irradiance: vec(light.irradiance, 3, "light.irradiance") },
     albedo: vec(header.albedo, 3, "albedo"),
     step,
+    maxDtau,
+    edge,
     arrays,
     bytes: buffer.byteLength,
   };

@@ -157,6 +157,9 @@ export class GLView {
     this.field = {
       worldToUnit: field.worldToUnit,
       step: field.step,
+      maxDtau: field.maxDtau,
+      edge: field.edge,
+      lightUnit: towardLight(field.worldToUnit, field.light.direction),
       sigmaScale: Number(sigma_t.scale),
       tauScale: Number(tau_light.scale),
       majScale: Number(majorant.scale),
@@ -205,6 +208,10 @@ export class GLView {
     gl.uniform2fv(L.uPixelOffset, offset);
     gl.uniform1i(L.uLinearOut, linear ? 1 : 0);
     gl.uniform1f(L.uLod, Math.max(0, Math.log2(stepScale / 2)));
+    gl.uniform1f(L.uMajScale, f.majScale);
+    gl.uniform1f(L.uMaxDtau, f.maxDtau);
+    gl.uniform3fv(L.uLightUnit, f.lightUnit);
+    gl.uniform1f(L.uEdge, f.edge);
     const units = [
       ["uDensTau", fast ? this.textures.packed : this.textures.densTau],
       ["uRad", this.textures.rad],
@@ -283,4 +290,11 @@ export class GLView {
     }
     return out;
   }
+}
+
+/** The direction toward the light (against ``direction``, which light travels) in the unit cube
+ * of a row-major world-to-unit map, per world unit. */
+function towardLight(w2u, direction) {
+  const l = normalize(direction.map((c) => -c));
+  return [0, 1, 2].map((r) => w2u[4 * r] * l[0] + w2u[4 * r + 1] * l[1] + w2u[4 * r + 2] * l[2]);
 }

@@ -3,10 +3,14 @@
 // thesis Eq. 4.24 integrated segment by segment in closed form,
 // docs/method.md, "The radiance field"):
 //   L_in(x) = E exp(-tau_light(x)) / 4pi + L_ms(x)
-//   per segment [t, t + dt]: sigma_t the mean of its end values, L_in linear in optical depth
-//   between its end values L0, L1, dtau = sigma_t dt:
-//     L += Tr albedo [L0 (1 - e^-dtau) + (L1 - L0) (1 - e^-dtau (1 + dtau)) / dtau];  Tr *= e^-dtau
-//   the first segment (1 - u) step long with one jitter u per pixel; stop when Tr < 1e-3
+//   tau_light: the grid's, or within uEdge of where the light enters the box the integral of
+//   sigma_t to the box (3 midpoints)
+//   per segment [t, t + dt]: sigma_t the mean of its end values, dtau = sigma_t dt; L_ms linear
+//   in optical depth between its end values M0, M1, tau_light too (a = dtau + tau1 - tau0):
+//     L += Tr albedo [E/4pi dtau (e^-tau0 - e^-(tau1 + dtau)) / a
+//                     + M0 (1 - e^-dtau) + (M1 - M0) (1 - e^-dtau (1 + dtau)) / dtau];  Tr *= e^-dtau
+//   segments of at most uMaxDtau at the block's majorant, and uStep; the first (1 - u) of one
+//   long, with one jitter u per pixel; stop when Tr < 1e-3
 // then display: clamp(L 2^exposure, 0, 1) through the sRGB transfer.
 
 export const VERTEX = `#version 300 es
@@ -35,7 +39,7 @@ precision highp sampler3D;
 uniform sampler3D uDensTau;   // R: sigma_t / sigmaScale, G: tau_light (field grid, linear);
                               // PACKED: R as above, GBA: L_in
 uniform sampler3D uRad;       // RGB: radiance after the first scattering / radScale (linear)
-uniform sampler3D uMaj;       // R: majorant / sigmaScale per block (nearest, texelFetch)
+uniform sampler3D uMaj;       // R: majorant / uMajScale per block (nearest, texelFetch)
 
 uniform vec3 uEye;            // camera, world units
 uniform vec3 uForward;
@@ -57,6 +61,10 @@ uniform uint uSeed;           // jitter set (0 for the view; others to average s
 uniform vec2 uPixelOffset;    // where in its pixel a ray starts (0.5, 0.5: the centre)
 uniform bool uLinearOut;      // write linear radiance x 2^exposure (to average), not sRGB
 uniform float uLod;           // PACKED: mip level of the field for long steps
+uniform float uMajScale;      // majorant per world unit = texel * uMajScale
+uniform float uMaxDtau;       // optical depth of a segment at most, at the block's majorant
+uniform vec3 uLightUnit;      // the direction toward the light in the unit cube, per world unit
+uniform float uEdge;          // where the light enters within this, tau_light is integrated
 
 out vec4 outColor;
 
@@ -74,15 +82,42 @@ float srgb(float x) {
   return x <= 0.0031308 ? 12.92 * x : 1.055 * pow(x, 1.0 / 2.4) - 0.055;
 }
 
-// (sigma_t per world unit, L_in) at unit-cube point p.
-vec4 fieldAt(vec3 p) {
+// What a segment's end holds: sigma_t per world unit, tau_light and L_ms (PACKED: L_in in ms,
+// tau unused).
+struct Sample {
+  float sigma;
+  float tau;
+  vec3 ms;
+};
+
+Sample sampleAt(vec3 p) {
+  Sample s;
 #if PACKED
   vec4 v = textureLod(uDensTau, p, uLod);
-  return vec4(v.r * uSigmaScale, v.gba);
+  s.sigma = v.r * uSigmaScale;
+  s.tau = 0.0;
+  s.ms = v.gba;
 #else
   vec2 st = texture(uDensTau, p).rg;
-  return vec4(st.r * uSigmaScale, uDirect * exp(-st.g * uTauScale) + texture(uRad, p).rgb * uRadScale);
+  s.sigma = st.r * uSigmaScale;
+  s.ms = texture(uRad, p).rgb * uRadScale;
+  // Where the light enters the box the grid's texture clamps: integrate sigma_t there instead
+  // (a point on the box's surface, where a ray enters it, counts as inside; the light never
+  // leaves through the faces it runs parallel to)
+  vec3 pc = clamp(p, 0.0, 1.0);
+  vec3 te = mix(max(-pc / uLightUnit, (1.0 - pc) / uLightUnit), vec3(1e30), lessThan(abs(uLightUnit), vec3(1e-9)));
+  float tExit = max(min(min(te.x, te.y), te.z), 0.0);
+  if (tExit <= uEdge) {
+    float sum = 0.0;
+    for (int k = 0; k < 3; k++) {
+      sum += texture(uDensTau, pc + ((float(k) + 0.5) / 3.0) * tExit * uLightUnit).r;
+    }
+    s.tau = sum * uSigmaScale * tExit / 3.0;
+  } else {
+    s.tau = st.g * uTauScale;
+  }
 #endif
+  return s;
 }
 
 void main() {
@@ -103,18 +138,25 @@ void main() {
   vec3 L = vec3(0.0);           // radiance accumulator
   if (tEnd > t) {
     float Tr = 1.0;             // transmittance from the eye
-    float dt = (1.0 - jitter(uvec2(gl_FragCoord.xy))) * uStep;  // the first segment's length
-    vec4 f0 = vec4(0.0);        // (sigma_t, L_in) at the segment's start
+    float frac = 1.0 - jitter(uvec2(gl_FragCoord.xy));  // the first segment's share of a step
+    Sample f0;                  // values at the segment's start
     bool fresh = false;         // whether f0 holds the values at t
     float tBlockEnd = -1.0;     // where the ray leaves the current majorant block
     bool empty = false;         // whether that block holds no medium
+    float step = uStep;         // segment length in this block
     for (int i = 0; i < MAX_STEPS; i++) {
       if (t >= tBlockEnd) {
         // Empty-space skipping: a block whose majorant is 0 holds no medium at all.
         vec3 cell = clamp(floor((ou + t * du) * uBlockCells), vec3(0.0), vec3(uBlocks - 1));
         vec3 te = max((cell / uBlockCells - ou) * inv, ((cell + 1.0) / uBlockCells - ou) * inv);
         tBlockEnd = min(min(te.x, te.y), te.z);
-        empty = texelFetch(uMaj, ivec3(cell), 0).r <= 0.0;
+        float maj = texelFetch(uMaj, ivec3(cell), 0).r * uMajScale;
+        empty = maj <= 0.0;
+#if PACKED
+        step = uStep;
+#else
+        step = min(uStep, uMaxDtau / max(maj, 1e-12));
+#endif
       }
       if (empty) {
         // nothing to add across an empty block; the field is read again where medium starts
@@ -123,19 +165,25 @@ void main() {
         if (t >= tEnd) break;
         continue;
       }
-      if (!fresh) f0 = fieldAt(ou + t * du);
-      float seg = min(dt, tEnd - t);
-      vec4 f1 = fieldAt(ou + (t + seg) * du);
+      if (!fresh) f0 = sampleAt(ou + t * du);
+      float seg = min(frac * step, tEnd - t);
+      Sample f1 = sampleAt(ou + (t + seg) * du);
       // One segment in closed form (exponential integrator)
-      float dtau = 0.5 * (f0.x + f1.x) * seg;
+      float dtau = 0.5 * (f0.sigma + f1.sigma) * seg;
       float segTr = exp(-dtau);
       float w1 = dtau > 1e-3 ? (1.0 - segTr * (1.0 + dtau)) / dtau : 0.5 * dtau;
-      L += Tr * uAlbedo * (f0.yzw * (1.0 - segTr) + (f1.yzw - f0.yzw) * w1);
+      vec3 seg_L = f0.ms * (1.0 - segTr) + (f1.ms - f0.ms) * w1;
+#if !PACKED
+      float a = dtau + f1.tau - f0.tau;
+      float single = abs(a) < 1e-4 ? exp(-f0.tau) * (1.0 - 0.5 * a) : (exp(-f0.tau) - exp(-f1.tau - dtau)) / a;
+      seg_L += uDirect * dtau * single;
+#endif
+      L += Tr * uAlbedo * seg_L;
       Tr *= segTr;
       t += seg;
       f0 = f1;
       fresh = true;
-      dt = uStep;
+      frac = 1.0;
       if (t >= tEnd || Tr < TR_MIN) break;
     }
   }

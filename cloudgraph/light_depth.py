@@ -1,0 +1,88 @@
+"""The field's single-scattering grid: optical depth to the light, fitted so that trilinear
+interpolation between grid points reads it right inside optically thick voxels.
+
+At grid points the light march gives tau_light exactly. Between them the field interpolates
+it trilinearly, and where a voxel is optically thick tau_light bends within the voxel: it grows
+faster than linearly where the density ramps up toward the light, so interpolating exact
+point values reads it too high there, and the field's single scattering too low (a dense
+cloud lit from the side read 5 % dark). Where a voxel's optical depth reaches THICK, the march
+also samples :data:`SUB_OFFSETS` points around each grid point, and the grid values are fitted
+to all samples by weighted least squares, weighted by what each sample scatters toward a camera
+(sigma_t T^2: a change of tau changes T by T). Elsewhere the grid keeps its exact values.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from scipy.ndimage import maximum_filter
+
+#: Optical depth across a field voxel from which the grid is fitted to sub-voxel samples.
+THICK = 0.5
+#: Sub-voxel samples around a grid point, in grid steps: the centres of its eight octants.
+SUB_OFFSETS = np.array([[x, y, z] for z in (-0.25, 0.25) for y in (-0.25, 0.25) for x in (-0.25, 0.25)])
+#: LSQR iterations of the fit (from the exact point values: a few sweeps take out most of the
+#: interpolation's bias; measured on the dense bench cloud, more fit the samples closer and the
+#: light seen by a camera no better).
+ITERATIONS = 10
+
+
+def sub_samples(sigma_t: np.ndarray, voxel: float) -> np.ndarray:
+    """(M, 3) grid coordinates (x, y, z; grid point i at i) of the sub-voxel samples around the
+    grid points of (nz, ny, nx) ``sigma_t`` whose neighbourhood holds a voxel of optical depth
+    THICK or more (``voxel``: the grid's step, world units)."""
+    thick = maximum_filter(sigma_t * voxel >= THICK, size=3, mode="constant")
+    z, y, x = np.nonzero(thick)
+    centres = np.stack([x, y, z], axis=1).astype(np.float64)
+    return (centres[:, None, :] + SUB_OFFSETS[None, :, :]).reshape(-1, 3)
+
+
+def _corners(coords: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray]:
+    """Flat indices (M, 8) of the grid points around (M, 3) grid coordinates, clamped as the
+    texture clamps, and their trilinear weights (M, 8)."""
+    nx, ny, nz = shape
+    base = np.floor(coords).astype(np.int64)
+    frac = coords - base
+    index, weight = [], []
+    for dz in (0, 1):
+        for dy in (0, 1):
+            for dx in (0, 1):  # the 8 corners of a cell, not a loop over samples
+                c = base + (dx, dy, dz)
+                ix, iy, iz = (np.clip(c[:, a], 0, n - 1) for a, n in enumerate((nx, ny, nz)))
+                index.append((iz * ny + iy) * nx + ix)
+                w = np.where((dx, dy, dz), frac, 1.0 - frac)
+                weight.append(w.prod(axis=1))
+    return np.stack(index, axis=1), np.stack(weight, axis=1)
+
+
+def fit_depth(
+    tau: np.ndarray, sigma_t: np.ndarray, coords: np.ndarray, tau_samples: np.ndarray
+) -> np.ndarray:
+    """The grid values (nz, ny, nx) whose trilinear interpolation best matches tau_light at the
+    grid points (``tau``, exact) and at the sub-voxel samples (``coords`` (M, 3) grid coordinates,
+    ``tau_samples`` (M,) exact), by weighted least squares (module docstring; LSQR from the exact
+    point values). Grid points no sample touches keep their value."""
+    if not len(coords):
+        return tau
+    shape = tau.shape[::-1]
+    flat_tau, flat_sigma = tau.ravel().astype(np.float64), sigma_t.ravel().astype(np.float64)
+    index, weight = _corners(coords, shape)
+    # The unknowns: the grid points the samples read
+    free = np.unique(index)
+    column = np.searchsorted(free, index)
+    sigma_samples = (flat_sigma[index] * weight).sum(axis=1)
+    # Each equation weighted by the square root of what its point scatters, sigma_t T^2
+    w_samples = np.sqrt(sigma_samples * np.exp(-2.0 * tau_samples))
+    w_points = np.sqrt(flat_sigma[free] * np.exp(-2.0 * flat_tau[free]))
+    m, k = len(coords), len(free)
+    rows = np.concatenate([np.repeat(np.arange(m), 8), m + np.arange(k)])
+    cols = np.concatenate([column.ravel(), np.arange(k)])
+    vals = np.concatenate([(w_samples[:, None] * weight).ravel(), w_points])
+    A = sp.csr_matrix((vals, (rows, cols)), shape=(m + k, k))
+    b = np.concatenate([w_samples * tau_samples, w_points * flat_tau[free]])
+    x0 = flat_tau[free]
+    dx = spla.lsqr(A, b - A @ x0, atol=1e-6, btol=1e-6, iter_lim=ITERATIONS)[0]
+    g = flat_tau.copy()
+    g[free] = np.maximum(x0 + dx, 0.0)
+    return g.reshape(tau.shape).astype(np.float32)
