@@ -21,7 +21,6 @@ import hashlib
 import json
 import logging
 import os
-import platform
 import resource
 import tempfile
 import time
@@ -39,6 +38,8 @@ from cloudgraph.render import GraphRenderer, render_volpath
 from cloudgraph.scene import CameraSpec, Scene, parse_scene
 from cloudgraph.volume import Volume, load_volume
 
+from .report import COLUMNS, CONVERGED_COLUMNS, machine, markdown, row_md, table
+
 log = logging.getLogger(__name__)
 DATA = Path(os.environ.get("CLOUDGRAPH_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
 
@@ -50,8 +51,9 @@ class BenchScene:
     density_scale: float
 
 
-#: The scenes run when none are named; ``holdout`` and ``dense`` are run and reported apart
-#: (docs/benchmark.md; issue 11).
+#: The scenes run when none are named; ``holdout``, ``dense``, ``thick`` and ``holdout_thick`` are
+#: run and reported apart (docs/benchmark.md). The held-out clouds are for measuring only: no
+#: parameter was ever chosen on them.
 SCENES = ["sphere", "noise", "smoke1", "blender"]
 
 
@@ -65,17 +67,21 @@ def bench_scenes(names: list[str] | None = None) -> list[BenchScene]:
         "blender": lambda: load_volume(DATA / "blender_smoke_000002.vdb"),
         # held out: a cloud made for measuring only, never used to choose a parameter
         "holdout": lambda: noise_volume(48, seed=2026),
-        # dense, as the Disney cloud of issue 11: free path a quarter voxel at its densest
+        # dense, as the Disney cloud: free path a quarter voxel at its densest
         "dense": lambda: noise_volume(64, seed=11),
+        # a shared cloud made optically thick: most of its body above optical depth 0.5 a voxel
+        "thick": lambda: load_volume(DATA / "blender_smoke_000002.vdb"),
+        # held out, thick: measured only
+        "holdout_thick": lambda: noise_volume(40, seed=4242),
     }
     out = []
     for name in names or SCENES:
         if name not in makers:
             raise ValueError(f"unknown bench scene {name!r}; choose from {', '.join(makers)}")
         v = makers[name]()
-        # sphere: optical radius about 10 (docs/benchmark.md); dense: densest voxel at optical depth 4;
-        # others: at 1
-        od_voxel = {"sphere": 10.0 / 23.0, "dense": 4.0}.get(name, 1.0)
+        # densest voxel at optical depth 1, or: sphere, optical radius about 10 (docs/benchmark.md);
+        # dense 4; thick 2; holdout_thick 2.5
+        od_voxel = {"sphere": 10.0 / 23.0, "dense": 4.0, "thick": 2.0, "holdout_thick": 2.5}.get(name, 1.0)
         out.append(BenchScene(name, v, od_voxel / float(v.density.max() * v.voxel_size.max())))
     return out
 
@@ -188,7 +194,7 @@ FIELD_AA_SPP = 4
 
 
 def field_row(bs: BenchScene, scene: Scene, renderer, ref: np.ndarray, ref_spp: int, cam256: dict) -> dict:
-    """The ``field`` estimator's figures for one scene and camera (issue 8): one-sample frame times
+    """The ``field`` estimator's figures for one scene and camera : one-sample frame times
     at 64^2 and 256^2 beside one volpath sample per pixel at 256^2, and the error and equal-error
     speed-up of the antialiased frame (FIELD_AA_SPP)."""
     s64, _ = timed_frames(partial(renderer.render, scene.camera, 1, estimator="field"))
@@ -320,7 +326,7 @@ def run_bench(
                     }
                 )
                 log.info("%s", {k: v for k, v in rows[-1].items() if k != "volpath_trace"})
-                print(_row_md(rows[-1]), flush=True)
+                print(row_md(rows[-1], COLUMNS), flush=True)
     result = {
         "machine": machine(),
         "quick": quick,
@@ -331,9 +337,9 @@ def run_bench(
     out_dir.mkdir(parents=True, exist_ok=True)
     stem = f"bench-{'quick' if quick else 'full'}-{time.strftime('%Y%m%d-%H%M%S')}"
     (out_dir / f"{stem}.json").write_text(json.dumps(result, indent=2))
-    table = markdown(result)
-    (out_dir / f"{stem}.md").write_text(table)
-    print(table)
+    text = markdown(result)
+    (out_dir / f"{stem}.md").write_text(text)
+    print(text)
     workdir.cleanup()
     return result
 
@@ -367,7 +373,7 @@ def reference_within(bs: BenchScene, scene: Scene, cache_dir: Path) -> tuple[int
 
 
 def run_converged(scenes: list[str] | None = None, out_dir: str | Path = "bench/results", quality="default"):
-    """Converged accuracy per scene, camera and albedo (issue 10's table): ``gather`` at
+    """Converged accuracy per scene, camera and albedo : ``gather`` at
     CONVERGED_SPP and ``field`` at FIELD_CONVERGED_SPP against volpath at CONVERGED_REF_SPP (RR off).
 
     The reference's own noise in the binned metric comes from an independent NOISE_PROBE_SPP run
@@ -404,128 +410,18 @@ def run_converged(scenes: list[str] | None = None, out_dir: str | Path = "bench/
                         "ref_binned_noise_pct": 100 * own,
                     }
                 )
-                print(_row_md(rows[-1], CONVERGED_COLUMNS), flush=True)
+                print(row_md(rows[-1], CONVERGED_COLUMNS), flush=True)
     result = {"machine": machine(), "quality": quality, "reference_spp": CONVERGED_REF_SPP, "rows": rows}
     out_dir.mkdir(parents=True, exist_ok=True)
     stem = f"bench-converged-{time.strftime('%Y%m%d-%H%M%S')}"
     (out_dir / f"{stem}.json").write_text(json.dumps(result, indent=2))
     m = result["machine"]
-    table = (
+    text = (
         f"# cloudgraph bench --converged\n\nMachine: {m['cpu']}, {m['cores']} cores; variant "
         f"{m['variant']}; quality {quality}; gather {CONVERGED_SPP} spp, field {FIELD_CONVERGED_SPP} spp; "
         f"reference volpath {CONVERGED_REF_SPP} spp (4x where its noise is over "
-        f"{100 * REF_NOISE_MAX:.0f} %), RR off.\n\n" + _table(rows, CONVERGED_COLUMNS)
+        f"{100 * REF_NOISE_MAX:.0f} %), RR off.\n\n" + table(rows, CONVERGED_COLUMNS)
     )
-    (out_dir / f"{stem}.md").write_text(table)
-    print(table)
+    (out_dir / f"{stem}.md").write_text(text)
+    print(text)
     return result
-
-
-CONVERGED_COLUMNS = [
-    "scene",
-    "camera",
-    "albedo",
-    "nodes",
-    "graph_MB",
-    "gather_mean_ratio",
-    "gather_binned_relMAE_pct",
-    "field_mean_ratio",
-    "field_binned_relMAE_pct",
-    "ref_spp",
-    "ref_binned_noise_pct",
-]
-
-COLUMNS = [
-    "scene",
-    "camera",
-    "albedo",
-    "precompute_s",
-    "relight_s",
-    "nodes",
-    "edges",
-    "cache_MB",
-    "build_s",
-    "lighting_s",
-    "transport_s",
-    "peak_rss_MB",
-    "graph_frame_s",
-    "MAE",
-    "MAE_pct_of_mean",
-    "mean_ratio",
-    "ref_noise_pct",
-    "MPE",
-    "MNE",
-    "relMSE",
-    "volpath_equal_error_s",
-    "speedup",
-    "break_even_frames",
-    "converged_binned_relMAE",
-    "converged_mean_ratio",
-]
-
-#: The field estimator's table (issue 8).
-FIELD_COLUMNS = [
-    "scene",
-    "camera",
-    "albedo",
-    "field_s",
-    "field_MB",
-    "field_frame_64_s",
-    "field_frame_256_s",
-    "volpath_1spp_256_s",
-    "field_vs_volpath_1spp",
-    "field_aa_frame_64_s",
-    "field_MAE_pct",
-    "field_binned_relMAE",
-    "field_mean_ratio",
-    "field_volpath_equal_error_s",
-    "field_speedup",
-]
-
-
-def _fmt(v) -> str:
-    return f"{v:.4g}" if isinstance(v, float) else str(v)
-
-
-def _row_md(row: dict, columns: list[str] = COLUMNS) -> str:
-    return "| " + " | ".join(_fmt(row.get(c)) for c in columns) + " |"
-
-
-def _table(rows: list[dict], columns: list[str]) -> str:
-    head = "| " + " | ".join(columns) + " |\n|" + "---|" * len(columns) + "\n"
-    return head + "\n".join(_row_md(r, columns) for r in rows) + "\n"
-
-
-def markdown(result: dict) -> str:
-    m = result["machine"]
-    head = (
-        f"# cloudgraph bench ({'quick' if result['quick'] else 'full'})\n\n"
-        f"Machine: {m['cpu']}, {m['cores']} cores, {m['memory_GB']} GB, {m['system']}; "
-        f"variant {m['variant']}; quality {result['quality']}; reference volpath "
-        f"{result['reference_spp']} spp, RR off.\n\n"
-    )
-    field = "\n## field estimator\n\n" + _table(result["rows"], FIELD_COLUMNS)
-    return head + _table(result["rows"], COLUMNS) + field
-
-
-def machine() -> dict:
-    import mitsuba as mi
-
-    cpu = platform.processor() or "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    mem = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
-    return {
-        "cpu": cpu,
-        "cores": os.cpu_count(),
-        "memory_GB": round(mem, 1),
-        "system": f"{platform.system()} {platform.release()}",
-        "python": platform.python_version(),
-        "variant": mi.variant(),
-        "mitsuba": mi.__version__,
-    }

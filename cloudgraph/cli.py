@@ -110,11 +110,14 @@ def _cmd_bench(args: argparse.Namespace) -> None:
 
     try:  # the harness lives beside the engine, in the checkout's bench/
         from bench.harness import run_bench, run_converged
+        from bench.parts import run_parts
     except ImportError:
         raise CloudgraphError("cloudgraph bench runs from a source checkout (its bench/ folder)") from None
 
     set_variant()
-    if args.converged:
+    if args.parts:
+        run_parts(scenes=args.scene, out_dir=args.out_dir, ref_spp=args.ref_spp)
+    elif args.converged:
         run_converged(scenes=args.scene, out_dir=args.out_dir)
     else:
         run_bench(quick=args.quick, scenes=args.scene, out_dir=args.out_dir)
@@ -201,9 +204,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="accuracy only: converged gather and field, 4096-spp references",
     )
     b.add_argument(
+        "--parts",
+        action="store_true",
+        help="the field's error by part (single scattering, all orders) beside gather and volpath",
+    )
+    b.add_argument("--ref-spp", type=int, default=4096, help="--parts: volpath reference samples")
+    b.add_argument(
         "--scene",
         action="append",
-        help="only these scenes (repeatable; 'holdout' and 'dense' are never default)",
+        help="only these scenes (repeatable; the held-out and thick ones are never default)",
     )
     b.add_argument("--out-dir", default="bench/results")
     b.set_defaults(func=_cmd_bench)

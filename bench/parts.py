@@ -1,0 +1,87 @@
+"""``cloudgraph bench --parts``: the field's error split into single scattering (``max_depth`` 1)
+and the whole, beside converged ``gather`` on the same cache and volpath (docs/benchmark.md).
+
+Per scene, camera and albedo, for single scattering and for all orders: ``gather`` at
+CONVERGED_SPP, ``field`` at 16 spp and at 1, each against an RR-free volpath reference (binned
+relMAE and mean ratio, metrics.bias_metrics), and ``field`` against ``gather`` directly (the
+field's own error where gather is right, without the reference's noise).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+from cloudgraph.cache import CacheStore
+from cloudgraph.metrics import bias_metrics
+from cloudgraph.precompute import precompute
+from cloudgraph.render import GraphRenderer
+
+from .harness import CONVERGED_SPP, LIGHT, _scene, bench_scenes, cameras, reference
+from .report import machine, row_md, table
+
+#: The scenes of ``--parts`` when none are named: the optically thick ones, held-out included.
+PARTS_SCENES = ["dense", "thick", "holdout_thick"]
+PARTS = {"single": 1, "all": -1}
+
+PARTS_COLUMNS = [
+    "scene",
+    "camera",
+    "albedo",
+    "part",
+    "gather_binned_relMAE_pct",
+    "gather_mean_ratio",
+    "field16_binned_relMAE_pct",
+    "field16_mean_ratio",
+    "field1_binned_relMAE_pct",
+    "field1_mean_ratio",
+    "field16_vs_gather_pct",
+    "ref_spp",
+]
+
+
+def run_parts(
+    scenes: list[str] | None = None, out_dir: str | Path = "bench/results", quality="default", ref_spp=4096
+) -> dict:
+    """The parts table (module docstring), written as JSON and markdown under ``out_dir``."""
+    out_dir = Path(out_dir)
+    store = CacheStore(out_dir.parent / "cache")
+    refs = out_dir.parent / "reference-cache"
+    rows = []
+    for bs in bench_scenes(scenes or PARTS_SCENES):
+        for albedo in (1.0, 0.8):
+            for cam_name, camera in cameras(bs.volume, LIGHT, 64).items():
+                for part, depth in PARTS.items():
+                    scene = _scene(bs, camera, albedo, 16, seed=0)
+                    scene = scene.model_copy(
+                        update={"render": scene.render.model_copy(update={"max_depth": depth})}
+                    )
+                    cache = precompute(scene, bs.volume, quality, store)
+                    ref = reference(bs, scene, ref_spp, refs)
+                    renderer = GraphRenderer(cache, bs.volume, scene)
+                    gather = renderer.render(scene.camera, CONVERGED_SPP, 1, "gather")
+                    field16 = renderer.render(scene.camera, 16, 1, "field")
+                    field1 = renderer.render(scene.camera, 1, 1, "field")
+                    row = {"scene": bs.name, "camera": cam_name, "albedo": albedo, "part": part}
+                    for name, image in (("gather", gather), ("field16", field16), ("field1", field1)):
+                        m = bias_metrics(image, ref)
+                        row[f"{name}_binned_relMAE_pct"] = 100 * m["binned_relMAE"]
+                        row[f"{name}_mean_ratio"] = m["mean_ratio"]
+                    row["field16_vs_gather_pct"] = 100 * bias_metrics(field16, gather)["binned_relMAE"]
+                    row["ref_spp"] = ref_spp
+                    rows.append(row)
+                    print(row_md(row, PARTS_COLUMNS), flush=True)
+    result = {"machine": machine(), "quality": quality, "reference_spp": ref_spp, "rows": rows}
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stem = f"bench-parts-{time.strftime('%Y%m%d-%H%M%S')}"
+    (out_dir / f"{stem}.json").write_text(json.dumps(result, indent=2))
+    m = result["machine"]
+    text = (
+        f"# cloudgraph bench --parts\n\nMachine: {m['cpu']}, {m['cores']} cores; variant "
+        f"{m['variant']}; quality {quality}; gather {CONVERGED_SPP} spp; reference volpath "
+        f"{ref_spp} spp, RR off; 64^2, 4x4-binned.\n\n" + table(rows, PARTS_COLUMNS)
+    )
+    (out_dir / f"{stem}.md").write_text(text)
+    print(text)
+    return result

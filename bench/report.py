@@ -1,0 +1,119 @@
+"""The bench's tables and the machine they ran on."""
+
+from __future__ import annotations
+
+import os
+import platform
+from pathlib import Path
+
+
+def fmt(v) -> str:
+    return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+
+def row_md(row: dict, columns: list[str]) -> str:
+    return "| " + " | ".join(fmt(row.get(c)) for c in columns) + " |"
+
+
+def table(rows: list[dict], columns: list[str]) -> str:
+    head = "| " + " | ".join(columns) + " |\n|" + "---|" * len(columns) + "\n"
+    return head + "\n".join(row_md(r, columns) for r in rows) + "\n"
+
+
+def machine() -> dict:
+    import mitsuba as mi
+
+    cpu = platform.processor() or "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    mem = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
+    return {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "memory_GB": round(mem, 1),
+        "system": f"{platform.system()} {platform.release()}",
+        "python": platform.python_version(),
+        "variant": mi.variant(),
+        "mitsuba": mi.__version__,
+    }
+
+
+CONVERGED_COLUMNS = [
+    "scene",
+    "camera",
+    "albedo",
+    "nodes",
+    "graph_MB",
+    "gather_mean_ratio",
+    "gather_binned_relMAE_pct",
+    "field_mean_ratio",
+    "field_binned_relMAE_pct",
+    "ref_spp",
+    "ref_binned_noise_pct",
+]
+
+
+COLUMNS = [
+    "scene",
+    "camera",
+    "albedo",
+    "precompute_s",
+    "relight_s",
+    "nodes",
+    "edges",
+    "cache_MB",
+    "build_s",
+    "lighting_s",
+    "transport_s",
+    "peak_rss_MB",
+    "graph_frame_s",
+    "MAE",
+    "MAE_pct_of_mean",
+    "mean_ratio",
+    "ref_noise_pct",
+    "MPE",
+    "MNE",
+    "relMSE",
+    "volpath_equal_error_s",
+    "speedup",
+    "break_even_frames",
+    "converged_binned_relMAE",
+    "converged_mean_ratio",
+]
+
+
+#: The field estimator's table.
+FIELD_COLUMNS = [
+    "scene",
+    "camera",
+    "albedo",
+    "field_s",
+    "field_MB",
+    "field_frame_64_s",
+    "field_frame_256_s",
+    "volpath_1spp_256_s",
+    "field_vs_volpath_1spp",
+    "field_aa_frame_64_s",
+    "field_MAE_pct",
+    "field_binned_relMAE",
+    "field_mean_ratio",
+    "field_volpath_equal_error_s",
+    "field_speedup",
+]
+
+
+def markdown(result: dict) -> str:
+    m = result["machine"]
+    head = (
+        f"# cloudgraph bench ({'quick' if result['quick'] else 'full'})\n\n"
+        f"Machine: {m['cpu']}, {m['cores']} cores, {m['memory_GB']} GB, {m['system']}; "
+        f"variant {m['variant']}; quality {result['quality']}; reference volpath "
+        f"{result['reference_spp']} spp, RR off.\n\n"
+    )
+    field = "\n## field estimator\n\n" + table(result["rows"], FIELD_COLUMNS)
+    return head + table(result["rows"], COLUMNS) + field
