@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -83,7 +84,13 @@ def _cmd_precompute(args: argparse.Namespace) -> None:
     scene = load_scene(args.scene)
     volume = scene_volume(scene)
     set_variant()
-    cache = precompute(scene, volume, args.quality, _store(args), _progress_bar())
+    if address := os.environ.get("CLOUDGRAPH_DASK_SCHEDULER"):  # its chunks on that Dask cluster
+        from cloudgraph_service.dask_chunks import precompute_chunks
+
+        with precompute_chunks(address) as chunks:
+            cache = precompute(scene, volume, args.quality, _store(args), _progress_bar(), chunks)
+    else:
+        cache = precompute(scene, volume, args.quality, _store(args), _progress_bar())
     for k, v in cache.keys.items():
         print(f"{k}: {v}")
     s = cache.stats

@@ -5,7 +5,7 @@ Job meta fields (``job.meta``), written by the API when it enqueues and by the w
 
 | field        | who     | meaning                                                          |
 |--------------|---------|------------------------------------------------------------------|
-| kind         | both    | precompute, render, frames or animation (API); helper (worker)   |
+| kind         | API     | precompute, render, frames or animation                          |
 | stage        | both    | the stage the job reports (``queued`` until a worker takes it)   |
 | fraction     | worker  | progress in [0, 1]                                               |
 | result_url   | API     | where the result is fetched once finished                        |
@@ -18,8 +18,8 @@ Job meta fields (``job.meta``), written by the API when it enqueues and by the w
 
 Job arguments cross the queue by name: each job function takes one keyword argument,
 ``payload`` (:data:`PAYLOAD`), the JSON of its payload model (:class:`PrecomputeJob`,
-:class:`RenderJob`, :class:`FramesJob`, :class:`EncodeJob`, :class:`ChunkJob`), which names the
-function it is for. The sender builds the model (:func:`enqueue_payload`); the job function
+:class:`RenderJob`, :class:`FramesJob`, :class:`EncodeJob`), which names the function it is
+for. The sender builds the model (:func:`enqueue_payload`); the job function
 validates it again (:meth:`JobPayload.received`) before it does anything.
 """
 
@@ -42,7 +42,6 @@ PRECOMPUTE_JOB = "worker.jobs.precompute_job"
 RENDER_JOB = "worker.jobs.render_job"
 FRAMES_JOB = "worker.jobs.frames_job"
 ENCODE_JOB = "worker.jobs.encode_job"
-CHUNK_JOB = "worker.jobs.chunk_job"  # a helper of another job's precompute (worker/chunks.py)
 
 # --------------------------------------------------------------------------------- payloads
 #: The one keyword argument of every job function: its payload, as JSON.
@@ -134,13 +133,6 @@ class EncodeJob(JobPayload):
     out_dir: str
     fps: float = Field(gt=0)
     frames: int = Field(ge=1)
-
-
-class ChunkJob(JobPayload):
-    """Helps with the chunks of another job's shared precompute ``run`` (worker/chunks.py)."""
-
-    FUNC: ClassVar[str] = CHUNK_JOB
-    run: str
 
 
 def enqueue_payload(queue: Queue, payload: JobPayload, **options) -> Job:

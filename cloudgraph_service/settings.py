@@ -56,6 +56,7 @@ class Settings(BaseSettings):
     CACHE_MAX_GB: float = 20.0
     WORKER_RENDERERS: int = 4  # loaded radiance caches kept per worker
     WORKER_THREADS: int = 0  # Dr.Jit threads per worker process (0: one per core)
+    DASK_SCHEDULER: str | None = None  # tcp://HOST:8786: precomputes run there (docs/cluster.md)
 
     @field_validator("DATA_DIR", "CACHE_DIR")
     @classmethod

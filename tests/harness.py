@@ -118,8 +118,7 @@ class Service:
         wait_until(lambda: get_ok(f"{self.url}/healthz"), 30, "the API did not start")
 
     def wait_ready(self, timeout: float = 60) -> None:
-        """Until every worker started is alive: a precompute asks for helpers from the workers
-        alive when it starts."""
+        """Until every worker started is alive (counted by /readyz)."""
 
         def all_alive():
             try:

@@ -9,13 +9,10 @@ from __future__ import annotations
 import logging
 import subprocess
 import time
-import uuid
-from contextlib import nullcontext
-from functools import partial
 from pathlib import Path
 
 import numpy as np
-from rq import Queue, Worker, get_current_job
+from rq import get_current_job
 
 from cloudgraph.files import write_atomic
 from cloudgraph.image import png_bytes, write_exr
@@ -23,18 +20,14 @@ from cloudgraph.scene import parse_scene
 from cloudgraph_service.protocol import (
     FRAME_FFMPEG,
     FRAME_FILE,
-    RESULT_TTL_S,
     VIDEO_FILE,
-    ChunkJob,
     EncodeJob,
     FramesJob,
     PrecomputeJob,
     RenderJob,
     cancel_key,
-    enqueue_payload,
 )
 
-from .chunks import MAX_HELPERS, SharedChunks, help_run
 from .state import state
 
 log = logging.getLogger(__name__)
@@ -59,82 +52,28 @@ def report(stage: str, fraction: float) -> None:
 
 def _cache(scene, volume, quality: str):
     """(keys, build) of the scene's radiance cache: its keys, worked out once per job (a pass
-    over the volume), and ``build(progress)``, which finds or makes the cache under those keys
-    with its chunks run by every free worker (worker/chunks.py), then trims the store to its
-    size limit (LRU)."""
+    over the volume), and ``build(progress)``, which finds or makes the cache under those keys,
+    with its chunks on the Dask cluster of ``CLOUDGRAPH_DASK_SCHEDULER`` where one is set, else
+    here (cloudgraph_service/dask_chunks.py), then trims the store to its size limit (LRU)."""
     from cloudgraph.cache import cache_keys
     from cloudgraph.params import build_params
     from cloudgraph.precompute import precompute
-    from cloudgraph.stages import local_chunks
     from cloudgraph.store import evict_lru
+    from cloudgraph_service.dask_chunks import precompute_chunks
 
     s = state()
     params = build_params(volume, scene.medium.density_scale, quality)
     keys = cache_keys(scene, volume, params)
 
     def build(progress):
-        job, rkey = get_current_job(), keys["radiance_key"]
-        if job is None or (s.caches.radiance_path(rkey).is_file() and s.caches.field_path(rkey).is_file()):
-            shared = nullcontext(local_chunks)  # outside a job, or nothing to compute: here
-        else:  # helpers are asked for at once, so that they load the volume while this worker does
-            run = f"{job.id}.{uuid.uuid4().hex[:8]}"
-            shared = SharedChunks(
-                job.connection,
-                run,
-                {
-                    "scene": scene.model_dump(mode="json"),
-                    "quality": quality,
-                    "params": params.to_dict(),
-                    "graph": not s.caches.graph_path(keys["graph_key"]).is_file(),  # to be built
-                },
-                s.caches.root / "runs" / run,
-                partial(_ask_helpers, job.connection, run),
-            )
-        with shared as chunks:
+        rkey = keys["radiance_key"]
+        found = s.caches.radiance_path(rkey).is_file() and s.caches.field_path(rkey).is_file()
+        with precompute_chunks(None if found else s.settings.DASK_SCHEDULER) as chunks:
             cache = precompute(scene, volume, quality, s.caches, progress, chunks)
         evict_lru(s.caches.root, int(s.settings.CACHE_MAX_GB * 2**30))
         return cache
 
     return keys, build
-
-
-def _ask_helpers(connection, run: str) -> int:
-    """One helper job per other worker, at the front of the queue; returns how many."""
-    settings = state().settings
-    queue = Queue(settings.QUEUE, connection=connection)
-    n = max(0, min(Worker.count(connection=connection, queue=queue) - 1, MAX_HELPERS))
-    for _ in range(n):
-        enqueue_payload(
-            queue,
-            ChunkJob(run=run),
-            at_front=True,
-            job_timeout=settings.JOB_TIMEOUT_S,
-            result_ttl=RESULT_TTL_S,
-            failure_ttl=RESULT_TTL_S,
-            meta={"kind": "helper", "stage": "queued", "fraction": 0.0},
-        )
-    return n
-
-
-def _builder(spec: dict):
-    """The graph builder of a shared run's spec (worker/chunks.py), with its node cells where the
-    run builds a graph: a helper makes it while the coordinator puts out the first stage."""
-    from cloudgraph.build import GraphBuilder
-    from cloudgraph.params import BuildParams
-
-    sc = parse_scene(spec["scene"])
-    builder = GraphBuilder(state().volume(sc), sc.medium.density_scale, BuildParams(**spec["params"]))
-    if spec.get("graph"):
-        builder.cells  # noqa: B018 (made now, not in the first chunk)
-    return builder
-
-
-def chunk_job(payload: dict) -> dict:
-    """Helps with another job's graph build (worker/chunks.py) until it ends (ChunkJob)."""
-    run = ChunkJob.received(payload).run
-    report("helping", 0.0)
-    n = help_run(get_current_job().connection, run, _builder)
-    return {"run": run, "chunks": n}
 
 
 def _renderer(scene, volume, quality: str, progress, radiance_key: str | None = None):

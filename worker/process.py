@@ -142,14 +142,18 @@ def run(running: Running, name: str) -> None:
         dr.set_thread_count(settings.WORKER_THREADS)
     import cloudgraph.integrators.graph  # noqa: F401  (registers the integrator for this variant)
 
-    # What jobs import (the engine's stages, scipy, OpenVDB), now: a second or so that every
-    # first job of a process would wait for, helpers of a shared precompute too
+    # What jobs import (the engine's stages, scipy, OpenVDB, Dask's client where a cluster is
+    # set), now: a second or so that every first job of a process would wait for
     import cloudgraph.precompute  # noqa: F401
+
+    if settings.DASK_SCHEDULER:
+        import cloudgraph_service.dask_chunks  # noqa: F401
 
     with contextlib.suppress(ImportError):  # without it, jobs that read .vdb files say so
         import pyopenvdb  # noqa: F401
 
-    log.info("worker %s: variant %s, data %s, redis %s", name, variant, settings.DATA_DIR, settings.REDIS_URL)
+    log.info("worker %s: variant %s, data %s, redis %s, dask %s", name, variant, settings.DATA_DIR,
+             settings.REDIS_URL, settings.DASK_SCHEDULER or "none: precomputes run here")  # fmt: skip
     conn = Redis.from_url(settings.REDIS_URL)
     CloudgraphWorker.heartbeat_s = settings.HEARTBEAT_S
     CloudgraphWorker.running = running

@@ -1,8 +1,10 @@
 """compose.yaml end to end: the image is built (cached layers: seconds after a code change), the
-cluster (Redis, the API, two workers on one data volume) comes up under a project name of its
-own and a free port on 127.0.0.1, waits on every healthcheck, then a real volume is uploaded, a
-draft cache precomputed and a small image rendered over HTTP on the published port. The cluster
-and its volumes are removed in a finalizer, whatever happens.
+cluster (Redis, the API, two RQ workers on one data volume, a Dask scheduler and two Dask
+workers) comes up under a project name of its own and free ports on 127.0.0.1, waits on every
+healthcheck, then a real volume is uploaded, a draft cache precomputed and a small image rendered
+over HTTP on the published port; a precompute during which one Dask worker is SIGKILLed ends with
+the bytes of the same precompute run undisturbed in one process. The cluster and its volumes are
+removed in a finalizer, whatever happens.
 
 Skipped, with the reason, where Docker or docker-compose is missing or its daemon does not
 answer, or where the base image (``make base-image``) has not been made. ``make cluster-test``
@@ -30,7 +32,9 @@ from ..conftest import DATA, ROOT
 BASE_IMAGE = os.environ.get("BASE_IMAGE", "cloudgraph-base:bookworm")
 IMAGE = os.environ.get("CLOUDGRAPH_IMAGE", "cloudgraph:latest")
 FOG = DATA / "fog_sphere.vdb"  # 78 KB: a draft cache in a few seconds
-WORKERS = 2
+BLENDER = DATA / "blender_smoke_000002.vdb"  # 300 KB: a default cache in some 10 s on 2 cores
+WORKERS = 2  # RQ workers
+DASK_WORKERS = 2
 ARTIFACTS = ROOT / "test-artifacts" / "cluster"
 
 
@@ -124,6 +128,7 @@ class Cluster:
         self.env = os.environ | {
             "CLOUDGRAPH_API_KEYS": key,
             "CLOUDGRAPH_PORT": str(port),
+            "CLOUDGRAPH_DASHBOARD_PORT": str(free_port()),
             "CLOUDGRAPH_BIND": "127.0.0.1",
             "CLOUDGRAPH_IMAGE": IMAGE,
         }
@@ -181,7 +186,7 @@ def cluster(request) -> Cluster:
     deadline, states = time.monotonic() + 240, {}
     while time.monotonic() < deadline:
         states = c.containers()
-        if len(states) == 2 + WORKERS and all(s == "healthy" for s in states.values()):
+        if len(states) == 3 + WORKERS + DASK_WORKERS and all(s == "healthy" for s in states.values()):
             break
         assert "unhealthy" not in states.values() and "exited" not in states.values(), (states, c.logs())
         time.sleep(1)
@@ -252,3 +257,82 @@ def test_cluster_uploads_precomputes_and_renders(cluster: Cluster):
     }
     assert len(listings) == 1 and listings.pop().strip(), "the workers do not share /data/cache"
     cluster.times["test_s"] = time.monotonic() - t0
+
+
+# The cache of a scene, built in the worker container by one process alone (no Dask), in a store
+# of its own (argv[2]); prints its keys, as JSON
+_UNDISTURBED = """
+import json, sys
+from cloudgraph.mitsuba_scene import set_variant
+from cloudgraph.cache import CacheStore
+from cloudgraph.precompute import precompute
+from cloudgraph.scene import parse_scene
+from cloudgraph.store import VolumeStore
+from cloudgraph.volume import load_volume
+set_variant()
+body = json.loads(sys.argv[1])
+path = str(VolumeStore("/data/volumes").path(body["volume"]["id"]))
+camera = {"eye": [30, 0, 5], "target": [0, 0, 5], "up": [0, 0, 1]}  # the cache does not depend on it
+scene = {"medium": body["medium"], "light": body["light"], "volume": {"path": path}, "camera": camera}
+scene = parse_scene(scene)
+store = CacheStore(sys.argv[2])
+keys = precompute(scene, load_volume(path), body["quality"], store).keys
+print(json.dumps(keys))
+"""
+
+# The sha256 of a cache's files in a store of the worker container, as JSON
+_DIGESTS = """
+import hashlib, json, sys
+from cloudgraph.cache import CacheStore
+store, keys = CacheStore(sys.argv[1]), json.loads(sys.argv[2])
+paths = {"graph": store.graph_path(keys["graph_key"]), "radiance": store.radiance_path(keys["radiance_key"]),
+         "field": store.field_path(keys["radiance_key"])}
+print(json.dumps({k: hashlib.sha256(p.read_bytes()).hexdigest() for k, p in paths.items()}))
+"""
+
+
+def test_a_dask_worker_sigkilled_mid_precompute_leaves_the_bytes_undisturbed(cluster: Cluster):
+    t0 = time.monotonic()
+
+    def in_worker(code: str, *args: str, timeout: float = 300) -> dict:
+        r = cluster.compose("exec", "-T", "worker", "python", "-c", code, *args, timeout=timeout)
+        assert r.returncode == 0, r.stderr[-3000:]
+        return json.loads(r.stdout.strip().splitlines()[-1])
+
+    headers = {"Authorization": f"Bearer {cluster.key}"}
+    with httpx.Client(base_url=cluster.url, headers=headers, timeout=60) as http:
+        with open(BLENDER, "rb") as f:
+            up = http.post("/v1/volumes", files={"file": (BLENDER.name, f)})
+        assert up.status_code in (200, 201), up.text
+        body = {
+            "volume": {"id": up.json()["id"]},
+            "medium": {"density_scale": 6.0},
+            "light": {"direction": [0.3, 0.2, -1]},
+            "quality": "default",
+        }
+        keys = in_worker(_UNDISTURBED, json.dumps(body), "/tmp/undisturbed")
+        undisturbed = in_worker(_DIGESTS, "/tmp/undisturbed", json.dumps(keys))
+        cluster.times["undisturbed_s"] = time.monotonic() - t0
+
+        t1 = time.monotonic()
+        pre = http.post("/v1/caches", json=body)
+        assert pre.status_code == 202, pre.text
+        cid, deadline = pre.json()["id"], time.monotonic() + 300
+        while (cache := http.get(f"/v1/caches/{cid}").json())["stage"] != "reinforce":
+            assert cache["status"] not in ("finished", "failed"), f"it ended before any kill: {cache}"
+            assert time.monotonic() < deadline, cache
+            time.sleep(0.05)
+        victim = cluster.compose("ps", "-q", "dask-worker").stdout.split()[0]
+        killed = _run("docker", "kill", "--signal", "KILL", victim)
+        assert killed.returncode == 0, killed.stderr
+        cluster.times["killed_at_s"] = time.monotonic() - t1
+        while (cache := http.get(f"/v1/caches/{cid}").json())["status"] not in ("finished", "failed"):
+            assert time.monotonic() < deadline, f"precompute did not end in 300 s: {cache}"
+            time.sleep(0.5)
+        assert cache["status"] == "finished", cache
+        assert cache["keys"] == keys
+        cluster.times["killed_precompute_s"] = time.monotonic() - t1
+    # The scheduler saw the worker go, and the cache is the bytes of the undisturbed run
+    scheduler_log = cluster.compose("logs", "--no-color", "dask-scheduler", timeout=60).stdout
+    assert "Remove worker" in scheduler_log, scheduler_log[-3000:]
+    assert in_worker(_DIGESTS, "/data/cache", json.dumps(keys)) == undisturbed

@@ -1,6 +1,5 @@
 """The typed boundaries between the API and the workers: job payloads by name, validated at both
-ends; a cache's radiance key handed down with a render; settings declared once, read at start-up;
-the run folder's files written atomically."""
+ends; a cache's radiance key handed down with a render; settings declared once, read at start-up."""
 
 from __future__ import annotations
 
@@ -10,7 +9,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 from rq import Queue
 
@@ -18,7 +16,6 @@ from cloudgraph_service.errors import PayloadError
 from cloudgraph_service.protocol import (
     PAYLOAD,
     RENDER_JOB,
-    ChunkJob,
     EncodeJob,
     FramesJob,
     PrecomputeJob,
@@ -30,7 +27,7 @@ from cloudgraph_service.settings import Settings
 
 from ..harness import ROOT, cache_of, fog_scene, free_port, rq, rq_job, wait_job
 
-PAYLOADS = (PrecomputeJob, RenderJob, FramesJob, EncodeJob, ChunkJob)
+PAYLOADS = (PrecomputeJob, RenderJob, FramesJob, EncodeJob)
 
 
 def _function(payload) -> object:
@@ -229,6 +226,7 @@ DEFAULTS = {
     "CACHE_MAX_GB": 20.0,
     "WORKER_RENDERERS": 4,
     "WORKER_THREADS": 0,
+    "DASK_SCHEDULER": None,
 }
 GOOD_KEY = "k3y-for-tests-0123456789abcdef"
 
@@ -326,30 +324,3 @@ def test_the_api_refuses_to_start_with_a_placeholder_key_and_says_why(tmp_path):
     assert api.stderr.strip().splitlines()[-1] == (
         "ValueError: CLOUDGRAPH_API_KEYS holds a placeholder or short key; use 16+ random characters"
     )
-
-
-# ------------------------------------------------------------------------ a run's files
-def test_a_chunk_result_is_written_whole_and_never_into_a_run_folder_that_is_gone(tmp_path):
-    from worker.chunks import _write
-
-    run = tmp_path / "runs" / "job.1234"
-    run.mkdir(parents=True)
-    _write(run / "1-0.npz", np.savez, a0=np.arange(5))
-    with np.load(run / "1-0.npz") as z:
-        assert z["a0"].tolist() == [0, 1, 2, 3, 4]
-    assert sorted(p.name for p in run.iterdir()) == ["1-0.npz"]  # no temporary file left
-
-    def fails(f):
-        f.write(b"half")
-        raise OSError("disk full")
-
-    with pytest.raises(OSError):
-        _write(run / "1-1.npz", fails)
-    assert sorted(p.name for p in run.iterdir()) == ["1-0.npz"]
-
-    for p in run.iterdir():
-        p.unlink()
-    run.rmdir()  # the run ended while a helper's chunk ran
-    with pytest.raises(FileNotFoundError):
-        _write(run / "1-2.npz", np.savez, a0=np.arange(2))
-    assert not run.exists()

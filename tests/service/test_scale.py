@@ -1,178 +1,250 @@
-"""One precompute over several workers (worker/chunks.py): the cache is the same bytes as one
-process builds, and a chunk whose worker died is redone. Real redis-server and worker processes."""
+"""One precompute over a Dask cluster (cloudgraph_service/dask_chunks.py): the cache is the same
+bytes as one process builds, on 1, 2 and 4 Dask workers, when a worker is SIGKILLed in the middle
+and when the scheduler is lost; through the service, a precompute job runs on the cluster,
+reports its progress and, cancelled, leaves no task behind. Real worker processes
+(``distributed.LocalCluster(processes=True)``, ``dask scheduler`` / ``dask worker``), real Redis."""
 
 from __future__ import annotations
 
-import threading
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+from collections import Counter
 from pathlib import Path
 
-import numpy as np
 import pytest
-from rq import Queue
-from rq.job import Job
 
 from cloudgraph.cache import CacheStore
 from cloudgraph.procedural import noise_volume
-from cloudgraph.scene import parse_scene
-from cloudgraph.volume import load_volume
-from worker.chunks import SharedChunks, _Run
+from cloudgraph.stages import STAGES
 
-from ..engine.test_graph import graph_arrays
 from ..harness import (
     BLENDER,
-    Service,
     blender_cache,
     free_port,
     job_of,
-    rq,
+    sse,
     start_service,
     upload,
     wait_job,
     wait_until,
 )
+from ..helpers import medium_scene
+
+distributed = pytest.importorskip("distributed")
+
+N_PATHS = 1 << 16  # 4 light-path chunks, so that every stage but one has work for 2 workers
 
 
-def _helpers(svc) -> list[Job]:
-    queue = Queue("cloudgraph", connection=rq(svc))
-    ids = queue.finished_job_registry.get_job_ids() + queue.started_job_registry.get_job_ids()
-    return [j for j in Job.fetch_many(ids, connection=rq(svc)) if j and j.meta.get("kind") == "helper"]
+def _files(store: CacheStore, cache) -> dict[str, bytes]:
+    keys = cache.keys
+    return {
+        "graph": store.graph_path(keys["graph_key"]).read_bytes(),
+        "radiance": store.radiance_path(keys["radiance_key"]).read_bytes(),
+        "field": store.field_path(keys["radiance_key"]).read_bytes(),
+    }
 
 
-def test_two_workers_share_one_precompute_and_write_the_bytes_one_process_writes(tmp_path, variant):
+@pytest.fixture(scope="module")
+def cloud(variant, tmp_path_factory) -> dict:
+    """A small noise cloud and its cache's bytes, built in this process alone."""
     from cloudgraph.precompute import precompute
 
-    svc = start_service(tmp_path / "svc", workers=2, WORKER_THREADS=1)
-    runs = svc.data_dir / "cache" / "runs"
+    volume = noise_volume(32, seed=7)
+    scene = medium_scene(volume, density_scale=1.0 / float(volume.density.max() * volume.voxel_size.max()))
+    store = CacheStore(tmp_path_factory.mktemp("alone"))
+    return {
+        "volume": volume,
+        "scene": scene,
+        "bytes": _files(store, precompute(scene, volume, "draft", store, n_paths=N_PATHS)),
+    }
+
+
+def _on_dask(cloud, address: str, store: Path, progress=None, **kwargs):
+    """(the cache's bytes, its DaskChunks) of the cloud precomputed on the cluster at ``address``."""
+    from cloudgraph.precompute import precompute
+    from cloudgraph_service.dask_chunks import precompute_chunks
+
+    store = CacheStore(store)
+    with precompute_chunks(address, **kwargs) as chunks:
+        cache = precompute(cloud["scene"], cloud["volume"], "draft", store, progress, chunks, n_paths=N_PATHS)
+    return _files(store, cache), chunks
+
+
+def _local_cluster(n: int):
+    return distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None)
+
+
+def test_the_cache_is_the_same_bytes_in_process_and_on_1_2_and_4_dask_workers(cloud, tmp_path):
+    from cloudgraph_service.dask_chunks import DaskChunks, client
+
+    with _local_cluster(1) as cluster:
+        c = client(cluster.scheduler_address)
+        for n in (1, 2, 4):
+            cluster.scale(n)
+            c.wait_for_workers(n, timeout=120)
+            with distributed.get_task_stream(c) as tasks:
+                files, chunks = _on_dask(cloud, cluster.scheduler_address, tmp_path / str(n))
+            assert isinstance(chunks, DaskChunks) and not chunks.lost
+            assert files == cloud["bytes"], n
+            ran_on = Counter(t["worker"] for t in tasks.data)
+            assert {t["key"].split("-")[0] for t in tasks.data} == {*STAGES, "volume", "inputs"}  # all there
+            assert len(ran_on) == 1 if n == 1 else len(ran_on) >= 2, ran_on  # shared when it can be
+        # Every worker, those that joined after the client, has the client's variant
+        import mitsuba as mi
+
+        assert set(c.run(lambda: __import__("mitsuba").variant()).values()) == {mi.variant()}
+
+
+def test_a_dask_worker_sigkilled_mid_precompute_is_made_good_and_the_bytes_are_the_same(cloud, tmp_path):
+    """The worker killed holds a result not yet merged (the field's light march, put out at the
+    start and wanted at the end) and may be running a chunk: Dask computes both again elsewhere,
+    from the inputs and volume scattered to every worker."""
+    from cloudgraph_service.dask_chunks import client
+
+    with _local_cluster(2) as cluster:
+        c = client(cluster.scheduler_address)
+        c.wait_for_workers(2, timeout=120)
+        killed = {}
+
+        def progress(stage, fraction):
+            if stage != "reinforce" or killed:
+                return
+            pids = c.run(os.getpid)
+            for worker, keys in c.has_what().items():
+                if any(str(k).startswith("field_tau") for k in keys):
+                    os.kill(pids[worker], signal.SIGKILL)
+                    killed[worker] = pids[worker]
+
+        with distributed.get_task_stream(c) as tasks:
+            files, chunks = _on_dask(cloud, cluster.scheduler_address, tmp_path / "killed", progress)
+        assert killed, "no worker held the light march's result at the first reinforcement round"
+        assert files == cloud["bytes"]
+        assert not chunks.lost
+        again = [k for k, n in Counter(t["key"] for t in tasks.data).items() if n > 1]
+        assert any(k.startswith("field_tau") for k in again), again  # computed twice: lost, then redone
+        c.wait_for_workers(2, timeout=60)  # the nanny started a fresh worker process
+        assert set(killed.values()).isdisjoint(c.run(os.getpid).values())
+
+
+def test_cloudgraph_precompute_runs_on_the_cluster_that_its_variable_names(variant, tmp_path):
+    """The CLI with ``CLOUDGRAPH_DASK_SCHEDULER``: its chunks on the cluster, the bytes of the CLI
+    without it."""
+    from cloudgraph.volume import write_vdb
+
+    volume = noise_volume(24, seed=3)
+    write_vdb(volume, tmp_path / "noise.vdb")
+    scene = {"volume": {"path": "noise.vdb"}, "medium": {"density_scale": 4.0}}
+    scene |= {"light": {"direction": [0, -1, 0]}, "camera": {"eye": [0, 0, 60], "target": [0, 0, 0]}}
+    (tmp_path / "scene.json").write_text(json.dumps(scene))
+    env = {k: v for k, v in os.environ.items() if not k.startswith("CLOUDGRAPH_")}
+
+    def cli(cache: str, **more) -> dict[str, bytes]:
+        cmd = [sys.executable, "-m", "cloudgraph.cli", "precompute", "scene.json", "--quality", "draft"]
+        cmd += ["--cache-dir", cache]
+        r = subprocess.run(cmd, cwd=tmp_path, env=env | more, capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr
+        return {str(p.relative_to(tmp_path / cache)): p.read_bytes() for p in (tmp_path / cache).rglob("*.*")}
+
+    here = cli("here")
+    with _local_cluster(2) as cluster, distributed.Client(cluster.scheduler_address) as c:
+        with distributed.get_task_stream(c) as tasks:
+            there = cli("there", CLOUDGRAPH_DASK_SCHEDULER=cluster.scheduler_address)
+    assert there == here and len(here) == 3, sorted(here)
+    assert {t["key"].split("-")[0] for t in tasks.data} >= {"trace", "flights", "field_ms", "graph_file"}
+
+
+def test_a_lost_scheduler_leaves_the_rest_of_the_precompute_to_this_process(cloud, tmp_path, caplog):
+    """The choice for a lost scheduler: the job does not fail; what is left runs here, the same
+    bytes, with a warning. With no scheduler to reach at all, the whole precompute runs here."""
+    port = free_port()
+    address = f"tcp://127.0.0.1:{port}"
+    quiet = {"stdout": subprocess.DEVNULL, "stderr": subprocess.DEVNULL}
+    scheduler = subprocess.Popen(
+        [sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", str(port)]
+        + ["--no-dashboard"],
+        **quiet,
+    )
+    worker = subprocess.Popen(
+        [sys.executable, "-m", "distributed.cli.dask_worker", address, "--nthreads", "1", "--no-dashboard"],
+        **quiet,
+    )
     try:
-        with svc.client() as c:
-            vid = upload(c, BLENDER).json()["id"]
-            # A shared precompute cancelled while both workers run its chunks ends on both
-            r = c.post("/v1/caches", json={**blender_cache(vid, density=5.0), "quality": "default"})
-            job = job_of(r)
-            wait_until(
-                lambda: c.get(f"/v1/jobs/{job}").json()["stage"] == "reinforce" and _helpers(svc),
-                120,
-                "the precompute never reached its reinforcement with a helper",
-                interval=0.05,
-            )
-            assert c.post(f"/v1/jobs/{job}/cancel").status_code == 200
-            assert wait_job(c, job)["status"] == "canceled"
-            wait_until(
-                lambda: all(j.get_status() == "finished" for j in _helpers(svc)), 30, "the helper went on"
-            )
-            # The API reports the cancel at once; the coordinator then waits (a lease at most) for
-            # chunks still held before it removes the run's keys and folder
-            wait_until(
-                lambda: not list(rq(svc).scan_iter("cloudgraph:run:*")) and not any(runs.iterdir()),
-                30,
-                "the cancelled run left keys or files",
-            )
+        from cloudgraph_service.dask_chunks import client
 
-            body = {**blender_cache(vid), "quality": "default"}  # 8 light-path chunks, then flights
-            r = c.post("/v1/caches", json=body)
-            assert r.status_code == 202, r.text
-            assert wait_job(c, job_of(r), timeout=300)["status"] == "finished"
-            keys = c.get(f"/v1/caches/{r.json()['id']}").json()["keys"]
-        # The other worker helped: its helper job ran chunks of this build, and ends with the run
-        wait_until(
-            lambda: all(j.get_status() == "finished" for j in _helpers(svc)), 30, "a helper outlived the run"
-        )
-        helped = [j.return_value()["chunks"] for j in _helpers(svc)]
-        assert len(helped) == 2 and helped[-1] >= 2, helped
-        assert not list(rq(svc).scan_iter("cloudgraph:run:*"))  # the run's keys are gone
-        assert not any(runs.iterdir())  # and its folder
+        client(address, connect_s=30).wait_for_workers(1, timeout=120)
+
+        def progress(stage, fraction):
+            if stage == "reinforce" and scheduler.poll() is None:
+                scheduler.kill()
+                scheduler.wait(10)
+
+        with caplog.at_level(logging.WARNING, logger="cloudgraph.dask"):
+            files, chunks = _on_dask(cloud, address, tmp_path / "lost", progress)
+        assert scheduler.returncode == -signal.SIGKILL
+        assert chunks.lost and files == cloud["bytes"]
+        assert "lost the Dask cluster" in caplog.text and "the rest runs here" in caplog.text
+
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="cloudgraph.dask"):
+            files, chunks = _on_dask(cloud, address, tmp_path / "none", connect_s=1.0)
+        from cloudgraph.stages import local_chunks
+
+        assert chunks is local_chunks and files == cloud["bytes"]
+        assert f"no Dask scheduler at {address}" in caplog.text
     finally:
-        svc.stop()
+        for p in (worker, scheduler):
+            p.kill()
+            p.wait(10)
 
-    # The same cache, built by this process alone
-    camera = {"eye": [30, 0, 5], "target": [0, 0, 5], "up": [0, 0, 1]}  # any: the cache does not depend on it
+
+def _our_tasks(cluster) -> list:
+    return [k for k in cluster.scheduler.tasks if not str(k).startswith(("Volume-", "dict-"))]
+
+
+def test_a_precompute_job_runs_on_the_dask_cluster_reports_progress_and_cancels_its_tasks(variant, tmp_path):
+    from cloudgraph.precompute import precompute
+    from cloudgraph.scene import parse_scene
+    from cloudgraph.volume import load_volume
+
+    with _local_cluster(2) as cluster:
+        svc = start_service(tmp_path / "svc", workers=1, DASK_SCHEDULER=cluster.scheduler_address)
+        try:
+            with svc.client() as c, distributed.Client(cluster.scheduler_address, set_as_default=False) as dc:
+                vid = upload(c, BLENDER).json()["id"]
+                # Cancelled while its flights run on the cluster: no task of it is left there
+                r = c.post("/v1/caches", json={**blender_cache(vid, density=5.0), "quality": "default"})
+                job = job_of(r)
+                wait_until(
+                    lambda: c.get(f"/v1/jobs/{job}").json()["stage"] == "reinforce", 180, "no reinforcement"
+                )
+                assert c.post(f"/v1/jobs/{job}/cancel").status_code == 200
+                assert wait_job(c, job)["status"] == "canceled"
+                wait_until(lambda: not _our_tasks(cluster), 30, f"tasks left: {_our_tasks(cluster)[:5]}")
+
+                body = blender_cache(vid)
+                with distributed.get_task_stream(dc) as tasks:
+                    r = c.post("/v1/caches", json=body)
+                    assert r.status_code == 202, r.text
+                    events = sse(c, job_of(r))
+                keys = c.get(f"/v1/caches/{r.json()['id']}").json()["keys"]
+            assert events[-1][0] == "end" and events[-1][1]["status"] == "finished", events[-1]
+            running = [d for e, d in events if e == "progress" and d["status"] == "running"]
+            fractions = [d["fraction"] for d in running]
+            assert len(running) >= 3 and fractions == sorted(fractions), running  # sampled every 0.25 s
+            assert "reinforce" in {d["stage"] for d in running}, running
+            assert len({t["worker"] for t in tasks.data}) == 2  # both Dask workers ran its chunks
+        finally:
+            svc.stop()
+
+    camera = {"eye": [30, 0, 5], "target": [0, 0, 5], "up": [0, 0, 1]}  # the cache does not depend on it
     scene = parse_scene(
-        {"medium": body["medium"], "light": body["light"], "volume": {"path": str(BLENDER)}, "camera": camera}
+        {**{k: body[k] for k in ("medium", "light")}, "volume": {"path": str(BLENDER)}, "camera": camera}
     )
     local = CacheStore(tmp_path / "local")
-    cache = precompute(scene, load_volume(BLENDER), "default", local)
+    cache = precompute(scene, load_volume(BLENDER), "draft", local)
     assert cache.keys == keys
-    served = CacheStore(svc.data_dir / "cache")
-    for path in ("graph_path", "radiance_path", "field_path"):
-        mine, theirs = getattr(local, path), getattr(served, path)
-        key = keys["graph_key"] if path == "graph_path" else keys["radiance_key"]
-        assert mine(key).read_bytes() == theirs(key).read_bytes(), path
-
-
-@pytest.fixture
-def redis_only(tmp_path):
-    svc = Service(tmp_path, {}, free_port(), 0)
-    svc.start_redis()
-    yield rq(svc)
-    svc.stop()
-
-
-def test_a_chunk_whose_worker_died_is_redone_and_the_graph_is_the_same(tmp_path, variant, redis_only):
-    """A worker killed while it holds a chunk looks to the others like this: a claimed task whose
-    lease is never renewed and whose result never comes."""
-    from cloudgraph.build import build_graph
-    from cloudgraph.params import build_params
-    from cloudgraph.stages import local_chunks
-
-    volume = noise_volume(24, seed=5)
-    ds = 1.0 / float(volume.density.max() * volume.voxel_size.max())
-    params = build_params(volume, ds, "draft", n_paths=1 << 16)  # 4 light-path chunks
-    alone = build_graph(volume, ds, params, local_chunks)
-
-    dead: list[str] = []
-
-    def claim_and_die():  # takes the first chunk it can, then is never heard of again
-        run = _Run(redis_only, "died", lease_s=1.0)
-        while not dead and not stop.is_set():
-            task = run.claim("killed-worker:1")
-            if task is not None:
-                dead.append(task)
-
-    stop = threading.Event()
-    thief = threading.Thread(target=claim_and_die)
-    thief.start()
-    try:
-        with SharedChunks(redis_only, "died", {}, tmp_path / "runs" / "died", lease_s=1.0) as shared:
-            shared_graph = build_graph(volume, ds, params, chunks=shared)
-    finally:
-        stop.set()
-        thief.join()
-    assert dead and shared.redone >= 1, (dead, shared.redone)
-    for a, b in zip(graph_arrays(alone), graph_arrays(shared_graph), strict=True):
-        np.testing.assert_array_equal(a, b)
-    assert (
-        not list(redis_only.scan_iter("cloudgraph:run:*")) and not Path(tmp_path / "runs" / "died").exists()
-    )
-
-
-def test_late_tasks_wait_until_no_other_task_is_left(redis_only):
-    """Tasks of a late stage (the field's light march, stages.LATE_STAGES) fill the gaps:
-    a helper takes them only when no other task is out, a coordinator only when it asks, and then
-    only those of the stage it asks for."""
-    from cloudgraph.stages import LAST_STAGES, LATE_STAGES
-
-    assert {"field_tau", "bins", "graph_file"} <= LATE_STAGES
-    assert "trace" not in LATE_STAGES
-    run = _Run(redis_only, "late", lease_s=1.0)
-    assert LAST_STAGES == {"graph_file"}
-    run.put(1, 2, late=True)  # the light march, put out first
-    run.put(2, 1, late=False)
-    run.put(4, 1, late=True, last=True)  # the graph file's bytes, wanted at the very end
-    run.put(3, 2, late=True)  # the node bins, wanted before the march's results
-    assert run.claim("coordinator", late=False) == "2:0"
-    assert run.claim("coordinator", late=False) is None
-    assert run.claim_late("coordinator", ["1:1", "1:0"]) == "1:1"  # not the head of the list
-    assert redis_only.get(run.key("lease:1:1")) == b"coordinator"
-    claims = [run.claim("helper") for _ in range(5)]
-    assert claims == ["3:0", "3:1", "1:0", "4:0", None]
-    assert run.claim_late("coordinator", ["1:0", "1:1"]) is None  # all taken
-
-
-def test_a_helper_that_ends_a_chunk_after_its_run_ended_leaves_no_key(redis_only):
-    run = _Run(redis_only, "over", lease_s=1.0)
-    redis_only.set(run.key("spec"), "{}")
-    run.done(3, "3:0")
-    assert redis_only.lrange(run.key("done:3"), 0, -1) == [b"3:0"]
-    redis_only.delete(run.key("spec"), run.key("done:3"))  # the coordinator ends the run
-    run.done(3, "3:1")
-    assert not list(redis_only.scan_iter(run.key("*")))
+    assert _files(local, cache) == _files(CacheStore(svc.data_dir / "cache"), cache)
