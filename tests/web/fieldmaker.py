@@ -17,10 +17,10 @@ from scipy.ndimage import map_coordinates
 from ..helpers import box_interval, pixel_rays
 
 
-def make_field(shape=(24, 20, 28), unit_to_world=None, block=4, seed=1) -> dict:
+def make_field(shape=(24, 20, 28), unit_to_world=None, block=4, seed=1, ms_coarsen=2) -> dict:
     """A blob of medium in part of the unit cube, with empty corners for the majorant to skip.
 
-    shape: (nz, ny, nx) of the density grid; the radiance grid is half as fine.
+    shape: (nz, ny, nx) of the density grid; the radiance grid is ms_coarsen times coarser.
     Returns {"header": dict, "arrays": {name: float32 array of the decoded values}} where the
     values are the float16 values the page sees (scale applied).
     """
@@ -34,7 +34,7 @@ def make_field(shape=(24, 20, 28), unit_to_world=None, block=4, seed=1) -> dict:
     sigma = np.clip(1.0 - r / 0.38, 0, None) * (0.7 + 0.3 * rng.random(shape)) * 9.0
     sigma[r > 0.38] = 0.0
     tau = 3.0 * np.clip(1.2 - y, 0, None) * (sigma > 0) + 0.2 * x
-    mz, my, mx = (nz + 1) // 2, (ny + 1) // 2, (nx + 1) // 2
+    mz, my, mx = (-(-n // ms_coarsen) for n in (nz, ny, nx))
     mzz, myy, mxx = np.meshgrid(*[(np.arange(n) + 0.5) / n for n in (mz, my, mx)], indexing="ij")
     rad = np.stack([0.05 + 0.04 * mxx, 0.04 + 0.05 * myy, 0.06 * (1 - mzz) + 0.01], axis=-1)
 

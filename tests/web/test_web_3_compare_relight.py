@@ -8,7 +8,7 @@ import re
 from .page import errors_shown, frames_drawn, orbit, shot, wait_rest
 
 #: The real-time view against the server's `field` render of the same camera, at rest.
-MAX_FIELD_REL_MAE = 0.03
+MAX_FIELD_REL_MAE = 0.01
 
 
 def test_compare_realtime_with_server_field(page):
