@@ -62,7 +62,7 @@ MAX_POINTS = 1 << 24
 #: cloud L_ms changes within a voxel near lit surfaces: at the field grid's resolution the
 #: dense bench cloud's field reads 1.6 % from converged gather, at half of it 2.7 %.
 MS_COARSEN = 1
-MS_MAX_POINTS = 1 << 18
+MS_MAX_POINTS = 1 << 17
 #: Directions per point of the multiple-scattering gather (8 and 16 measure the same on the
 #: dense bench cloud: the camera march averages neighbouring points' turned sets), and its march
 #: step in field voxels.

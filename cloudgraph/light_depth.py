@@ -48,18 +48,17 @@ def sub_samples(sigma_t: np.ndarray, voxel: float) -> np.ndarray:
 def _corners(coords: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray]:
     """Flat indices (M, 8) of the grid points around (M, 3) grid coordinates, clamped as the
     texture clamps, and their trilinear weights (M, 8)."""
-    nx, ny, nz = shape
     base = np.floor(coords).astype(np.int64)
     frac = coords - base
+    ends = [(np.clip(base[:, a], 0, n - 1), np.clip(base[:, a] + 1, 0, n - 1)) for a, n in enumerate(shape)]
+    nx, ny, _ = shape
     index, weight = [], []
     for dz in (0, 1):
         for dy in (0, 1):
             for dx in (0, 1):  # the 8 corners of a cell, not a loop over samples
-                c = base + (dx, dy, dz)
-                ix, iy, iz = (np.clip(c[:, a], 0, n - 1) for a, n in enumerate((nx, ny, nz)))
-                index.append((iz * ny + iy) * nx + ix)
-                w = np.where((dx, dy, dz), frac, 1.0 - frac)
-                weight.append(w.prod(axis=1))
+                index.append((ends[2][dz] * ny + ends[1][dy]) * nx + ends[0][dx])
+                w = (frac[:, 0] if dx else 1.0 - frac[:, 0]) * (frac[:, 1] if dy else 1.0 - frac[:, 1])
+                weight.append(w * (frac[:, 2] if dz else 1.0 - frac[:, 2]))
     return np.stack(index, axis=1), np.stack(weight, axis=1)
 
 
@@ -75,18 +74,25 @@ def fit_depth(
     shape = tau.shape[::-1]
     flat_tau, flat_sigma = tau.ravel().astype(np.float64), sigma_t.ravel().astype(np.float64)
     index, weight = _corners(coords, shape)
-    # The unknowns: the grid points the samples read
-    free = np.unique(index)
-    column = np.searchsorted(free, index)
+    # The unknowns: the grid points the samples read (a mask: no sort of the samples' corners)
+    touched = np.zeros(flat_tau.size, bool)
+    touched[index.ravel()] = True
+    free = np.flatnonzero(touched)
+    column = np.cumsum(touched) - 1  # grid point -> its unknown
     sigma_samples = (flat_sigma[index] * weight).sum(axis=1)
     # Each equation weighted by the square root of what its point scatters, sigma_t T^2
     w_samples = np.sqrt(sigma_samples * np.exp(-2.0 * tau_samples))
     w_points = np.sqrt(flat_sigma[free] * np.exp(-2.0 * flat_tau[free]))
     m, k = len(coords), len(free)
-    rows = np.concatenate([np.repeat(np.arange(m), 8), m + np.arange(k)])
-    cols = np.concatenate([column.ravel(), np.arange(k)])
-    vals = np.concatenate([(w_samples[:, None] * weight).ravel(), w_points])
-    A = sp.csr_matrix((vals, (rows, cols)), shape=(m + k, k))
+    # sample rows (8 corners each), then the grid points' own rows: CSR made in order, unsorted
+    A = sp.csr_matrix(
+        (
+            np.concatenate([(w_samples[:, None] * weight).ravel(), w_points]),
+            np.concatenate([column[index].ravel(), np.arange(k)]),
+            np.concatenate([np.arange(0, 8 * m, 8), 8 * m + np.arange(k + 1)]),
+        ),
+        shape=(m + k, k),
+    )
     b = np.concatenate([w_samples * tau_samples, w_points * flat_tau[free]])
     x0 = flat_tau[free]
     dx = spla.lsqr(A, b - A @ x0, atol=1e-6, btol=1e-6, iter_lim=ITERATIONS)[0]

@@ -219,12 +219,13 @@ def test_the_field_file_has_the_documented_layout(sphere, tmp_path):
     expected = sphere["volume"].density.transpose(2, 1, 0) * sphere["scene"].medium.density_scale
     np.testing.assert_allclose(cache.field.sigma_t, expected, rtol=1e-3, atol=1e-6)
     # the optical depth to the light is sigma times the chord to the ball's surface (radius 11
-    # voxels, centre at the origin), up to the voxelised edge: checked a voxel and more inside
+    # voxels, centre at the origin), up to the voxelised edge: checked where the grid keeps its
+    # exact values (the fit of light_depth.py moves those within two voxels of the edge's ramp)
     p = (np.stack(np.meshgrid(*(np.arange(n) for n in (nz, ny, nx)), indexing="ij"), -1)[..., ::-1]) - 11.5
     w = -np.asarray(LIGHT) / np.linalg.norm(LIGHT)
     b = (p * w).sum(-1)
     chord = -b + np.sqrt(np.maximum(b * b - (p * p).sum(-1) + 11.0**2, 0.0))
-    inside = np.linalg.norm(p, axis=-1) < 10.0
+    inside = np.linalg.norm(p, axis=-1) < 8.0
     sigma = sphere["sigma"]
     tau = cache.field.tau_light[inside]
     assert np.abs(tau - sigma * chord[inside]).max() < 1.0 * sigma
