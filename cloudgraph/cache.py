@@ -2,8 +2,10 @@
 
 Keys are sha256 of canonical JSON with the engine format version included:
 - volume id: the density values and the transform;
-- graph key: volume id + density_scale + build parameters;
-- radiance key: graph key + albedo + light + max_depth (+ lighting parameters).
+- graph key: volume id + density_scale + build parameters; for an anisotropic phase the
+  density_scale of the similarity-scaled medium whose graph it is (``MediumSpec.graph_medium``);
+- radiance key: graph key + albedo + light + max_depth (+ lighting parameters), and the phase
+  when it is not isotropic (an isotropic scene keeps its v1 keys).
 
 Files (graph_file.py, field_file.py) are written to a temporary name in the same folder and
 renamed into place, so a reader never sees a half-written cache.
@@ -57,19 +59,24 @@ def graph_key(vol_id: str, density_scale: float, build_params: dict) -> str:
     )
 
 
-def radiance_key(g_key: str, albedo, light_dir, irradiance, max_depth: int, lighting: dict) -> str:
+def radiance_key(
+    g_key: str, albedo, light_dir, irradiance, max_depth: int, lighting: dict, phase_lobes=None
+) -> str:
+    """``phase_lobes``: ((weight, g), ...) of an anisotropic phase (``PhaseSpec.lobes``), None for
+    the isotropic one, whose keys stay as they were before phases."""
     unit = np.asarray(light_dir, float) / np.linalg.norm(light_dir)
-    return _digest(
-        {
-            "v": ENGINE_FORMAT_VERSION,
-            "graph": g_key,
-            "albedo": np.broadcast_to(np.asarray(albedo, float), (3,)).round(9).tolist(),
-            "light_dir": unit.round(9).tolist(),
-            "irradiance": np.broadcast_to(np.asarray(irradiance, float), (3,)).round(9).tolist(),
-            "max_depth": int(max_depth),
-            "lighting": lighting,
-        }
-    )
+    doc = {
+        "v": ENGINE_FORMAT_VERSION,
+        "graph": g_key,
+        "albedo": np.broadcast_to(np.asarray(albedo, float), (3,)).round(9).tolist(),
+        "light_dir": unit.round(9).tolist(),
+        "irradiance": np.broadcast_to(np.asarray(irradiance, float), (3,)).round(9).tolist(),
+        "max_depth": int(max_depth),
+        "lighting": lighting,
+    }
+    if phase_lobes is not None:
+        doc["phase"] = np.asarray(phase_lobes, float).round(9).tolist()
+    return _digest(doc)
 
 
 _VOLUME_IDS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -80,7 +87,11 @@ def cache_keys(scene: Scene, volume: Volume, params: BuildParams) -> dict:
     vid = _VOLUME_IDS.get(volume)
     if vid is None:
         vid = _VOLUME_IDS[volume] = volume_id(volume)
-    gkey = graph_key(vid, scene.medium.density_scale, params.to_dict())
+    phase = scene.medium.phase
+    # An anisotropic phase's graph is that of its similarity-scaled medium (docs/method.md,
+    # "Anisotropic scattering"): keyed by that medium's density_scale, so that a new g (or, for
+    # such a phase, a new albedo) builds its own graph
+    gkey = graph_key(vid, scene.medium.graph_medium()[0], params.to_dict())
     rkey = radiance_key(
         gkey,
         scene.medium.albedo_rgb(),
@@ -88,6 +99,7 @@ def cache_keys(scene: Scene, volume: Volume, params: BuildParams) -> dict:
         scene.light.irradiance_rgb(),
         scene.render.max_depth,
         LIGHTING,
+        None if phase.isotropic else phase.lobes(),
     )
     return {"volume_id": vid, "graph_key": gkey, "radiance_key": rkey}
 

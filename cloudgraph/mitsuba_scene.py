@@ -10,7 +10,7 @@ import os
 
 import numpy as np
 
-from .scene import CameraSpec, Scene
+from .scene import CameraSpec, PhaseSpec, Scene
 from .volume import Volume
 
 #: Russian roulette depth that turns roulette off in practice (docs/method.md, "What is known about
@@ -39,7 +39,8 @@ def mitsuba_max_depth(max_depth: int) -> int:
 
 
 def medium_dict(volume: Volume, scene: Scene) -> dict:
-    """Mitsuba ``heterogeneous`` medium: sigma_t = density * density_scale, constant albedo."""
+    """Mitsuba ``heterogeneous`` medium: sigma_t = density * density_scale, constant albedo, the
+    scene's phase function."""
     import mitsuba as mi
 
     grid = np.ascontiguousarray(volume.density.transpose(2, 1, 0)[..., None], np.float32)  # (z, y, x, 1)
@@ -53,7 +54,23 @@ def medium_dict(volume: Volume, scene: Scene) -> dict:
         },
         "albedo": {"type": "constvolume", "value": {"type": "rgb", "value": list(scene.medium.albedo_rgb())}},
         "scale": float(scene.medium.density_scale),
-        "phase": {"type": "isotropic"},
+        "phase": phase_dict(scene.medium.phase),
+    }
+
+
+def phase_dict(phase: PhaseSpec) -> dict:
+    """Mitsuba's phase function of a scene's: ``isotropic``, ``hg`` (the same sign of g), or for
+    ``hg2`` a ``blendphase`` of two ``hg``, whose ``weight`` is the *second* one's."""
+    if phase.type == "isotropic":
+        return {"type": "isotropic"}
+    if phase.type == "hg":
+        return {"type": "hg", "g": float(phase.g)}
+    g1, g2 = phase.g
+    return {
+        "type": "blendphase",
+        "weight": 1.0 - float(phase.weight),
+        "phase1": {"type": "hg", "g": float(g1)},
+        "phase2": {"type": "hg", "g": float(g2)},
     }
 
 

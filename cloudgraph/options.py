@@ -10,5 +10,10 @@ INTEGRATORS = ("volpath", "graph")
 #: Camera-stage estimators of the graph integrator (see ``cloudgraph/integrators/graph.py``).
 ESTIMATORS = ("gather", "free_flight", "march", "field")
 
+#: The estimators that render an anisotropic phase function (docs/method.md, "Anisotropic
+#: scattering"): ``free_flight`` and ``march`` read the graph's radiance where the camera's ray
+#: scatters, which holds single scattering isotropically, so they take the isotropic phase only.
+PHASE_ESTIMATORS = ("gather", "field")
+
 #: Graph quality presets (see ``cloudgraph.graph.PRESETS``).
 QUALITIES = ("draft", "compact", "default", "high")

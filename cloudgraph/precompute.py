@@ -2,7 +2,10 @@
 through the cache.
 
 A changed albedo, light or depth reuses the graph and recomputes only the radiance and the field
-(a relight).
+(a relight). An anisotropic phase (docs/method.md, "Anisotropic scattering") builds, lights and
+transports the graph of the similarity-scaled isotropic medium (``MediumSpec.graph_medium``),
+and bakes the field in the real one: its single scattering and its flights to the graph's
+radiance are those of the real medium.
 """
 
 from __future__ import annotations
@@ -122,10 +125,19 @@ def precompute(
     """
     store = store or CacheStore()
     progress = progress or (lambda stage, fraction: None)
+    # The build parameters are the scene's medium's (node radius from its free path: the same
+    # as the service works out for its keys), whatever medium the graph is of
     params = build_params(volume, scene.medium.density_scale, quality, **build_overrides)
     keys = cache_keys(scene, volume, params)
     gkey, rkey = keys["graph_key"], keys["radiance_key"]
     light_dir = np.asarray(scene.light.unit_direction())
+    # The graph's medium: the scene's, or for an anisotropic phase its similarity-scaled
+    # isotropic medium (sigma_t' = sigma_t (1 - a g), albedo' = a (1 - g) / (1 - a g)). The
+    # field is baked in the real medium, by a builder of its own; its chunks then run here, as
+    # a Dask run's chunks are all made with the run's first builder (cloudgraph_service).
+    isotropic = scene.medium.phase.isotropic
+    graph_density, graph_albedo = scene.medium.graph_medium()
+    field_builder, field_chunks = None, chunks if isotropic else local_chunks
 
     found = read_radiance(store.radiance_path(rkey))
     found_field = store.load_field(rkey)
@@ -135,7 +147,7 @@ def precompute(
     def field_points() -> FieldPoints:
         nonlocal points
         if points is None:
-            points = FieldPoints.of(volume, builder.field)
+            points = FieldPoints.of(volume, field_builder.field)
         return points
 
     def light(positions):
@@ -147,7 +159,8 @@ def precompute(
         lit = chunks(builder, "lighting", lighting_inputs(positions, scene, params))
 
     if found is None or found_field is None:  # the graph is needed: read it, or build it
-        builder = GraphBuilder(volume, scene.medium.density_scale, params)
+        builder = GraphBuilder(volume, graph_density, params)
+        field_builder = builder if isotropic else GraphBuilder(volume, scene.medium.density_scale, params)
 
         def march():
             # The field's light march needs the medium and the light only: it goes out early,
@@ -157,7 +170,7 @@ def precompute(
             # points)
             nonlocal marched
             if marched is None and found_field is None:
-                marched = march_light(builder, field_points(), light_dir, chunks)
+                marched = march_light(field_builder, field_points(), light_dir, field_chunks)
 
         if store.graph_path(gkey).is_file():
             march()
@@ -166,7 +179,7 @@ def precompute(
         if graph is None:
             built = build_graph(
                 volume,
-                scene.medium.density_scale,
+                graph_density,
                 params,
                 chunks,
                 lambda s, f: progress(s, 0.7 * f),
@@ -194,7 +207,7 @@ def precompute(
         t_light = time.perf_counter() - t_light
         progress("transport", 0.85)
         t0 = time.perf_counter()
-        C, albedo, depth = graph.collision_matrix(), scene.medium.albedo_rgb(), scene.render.max_depth
+        C, albedo, depth = graph.collision_matrix(), graph_albedo, scene.render.max_depth
 
         def still_wanted():  # progress() raises when the job was cancelled
             progress("transport", 0.85)
@@ -219,8 +232,9 @@ def precompute(
         field_data, fstats = found_field, {}
     else:
         progress("field", 0.95)
+        # (the real albedo: L_ms is albedo L' gathered through the real medium, as gather's)
         field, fstats = bake_field(
-            builder,
+            field_builder,
             field_points(),
             graph,
             radiance_gather,
@@ -228,10 +242,12 @@ def precompute(
             light_dir,
             scene.light.irradiance_rgb(),
             rkey,
-            chunks,
+            field_chunks,
             marched,
             next(iter(bins)),
         )
+        if not isotropic:  # the page's march applies it to single scattering (api.md)
+            field.meta["phase"] = scene.medium.phase.model_dump()
         field_data = field.encode()  # render what is stored, fresh or loaded alike
     # The graph is written last: a worker that shares this precompute makes its bytes whenever
     # the other stages leave it idle
@@ -257,6 +273,8 @@ def precompute(
         "radius": params.radius,
         "quality": quality,
     }
+    if not isotropic:
+        stats["similarity"] = {"density_scale": graph_density, "albedo": list(graph_albedo)}
     return RadianceCache(radiance, radiance_gather, field_data, keys, stats, store, graph)
 
 

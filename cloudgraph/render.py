@@ -44,6 +44,7 @@ class GraphRenderer:
         self.cache, self.volume, self.estimator, self.step = cache, volume, estimator, step
         self.medium = DensityField.from_volume(volume, scene.medium.density_scale)
         self.light = (scene.medium.albedo_rgb(), scene.light.unit_direction(), scene.light.irradiance_rgb())
+        self.phase, self.max_depth = scene.medium.phase, scene.render.max_depth
         self._integrators: dict = {}
         self._scenes: dict[tuple, tuple] = {}
 
@@ -65,8 +66,9 @@ class GraphRenderer:
                 grid = NodeGrid.build(positions, search_radius, radiance)
             integrator = GraphIntegrator(mi.Properties())
             integrator.set_cache(
-                self.medium, *self.light, estimator, grid, field, self.cache.stats["radius"], self.step
-            )
+                self.medium, *self.light, estimator, grid, field, self.cache.stats["radius"], self.step,
+                self.phase, self.max_depth,
+            )  # fmt: skip
             self._integrators[estimator] = integrator
         return self._integrators[estimator]
 

@@ -1,7 +1,8 @@
 """Scene spec v1: the one JSON contract shared by the CLI, the HTTP API and the worker.
 
-See docs/method.md, "Scene spec v1". Units: world units for lengths, degrees for ``fov``,
-``density_scale`` multiplies grid values into sigma_t per world unit.
+See docs/method.md, "Scene spec v1" (and v1.1's ``medium.phase``). Units: world units for
+lengths, degrees for ``fov``, ``density_scale`` multiplies grid values into sigma_t per world
+unit.
 """
 
 from __future__ import annotations
@@ -11,7 +12,15 @@ import math
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_serializer,
+    model_validator,
+)
 
 from .errors import SceneError
 
@@ -51,15 +60,124 @@ class VolumeSpec(_Model):
         return self
 
 
+#: Largest |g| of a Henyey-Greenstein lobe (scene spec v1.1).
+MAX_G = 0.95
+PHASE_TYPES = ("isotropic", "hg", "hg2")
+Asymmetry = Annotated[float, Field(ge=-MAX_G, le=MAX_G)]
+
+
+def _number(v, what: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        raise ValueError(f"{what} must be a finite number, got {v!r}")
+    return float(v)
+
+
+def _asymmetry(v, what: str) -> float:
+    g = _number(v, what)
+    if abs(g) > MAX_G:
+        raise ValueError(f"{what} must be in [-{MAX_G}, {MAX_G}] (g > 0 scatters forward), got {g:g}")
+    return g
+
+
+class PhaseSpec(_Model):
+    """The phase function (scene spec v1.1): ``isotropic``; ``hg``, Henyey-Greenstein of
+    asymmetry ``g`` (Mitsuba's sign: g > 0 scatters forward); ``hg2``, a blend of two HG lobes
+    ``g`` = [g1, g2], ``weight`` that of the first (Mitsuba's ``blendphase``)."""
+
+    type: Literal["isotropic", "hg", "hg2"] = "isotropic"
+    g: Asymmetry | tuple[Asymmetry, Asymmetry] | None = Field(
+        None, description=f"hg: the asymmetry in [-{MAX_G}, {MAX_G}], > 0 forward; hg2: [g1, g2]"
+    )
+    weight: Unit | None = Field(None, description="hg2: the first lobe's weight, in [0, 1]")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _check(cls, data):
+        # One check per type, each naming its field (a union of models would name the tag too)
+        if not isinstance(data, dict):
+            return data
+        kind, g, weight = data.get("type", "isotropic"), data.get("g"), data.get("weight")
+        if kind not in PHASE_TYPES:
+            raise ValueError(f"type must be one of {', '.join(PHASE_TYPES)}, got {kind!r}")
+        unknown = sorted(set(data) - {"type", "g", "weight"})
+        if unknown:
+            raise ValueError(f"unknown field {unknown[0]!r} (a phase has type, g and weight)")
+        if kind == "isotropic" and (g is not None or weight is not None):
+            raise ValueError("an isotropic phase takes no g or weight")
+        if kind == "hg":
+            if g is None:
+                raise ValueError("g is required for type 'hg' (the asymmetry, g > 0 forward)")
+            if weight is not None:
+                raise ValueError("weight is for type 'hg2' (two lobes), not 'hg'")
+            return {"type": kind, "g": _asymmetry(g, "g")}
+        if kind == "hg2":
+            if not isinstance(g, list | tuple) or len(g) != 2:
+                raise ValueError(f"g must be two asymmetries [g1, g2] for type 'hg2', got {g!r}")
+            if weight is None:
+                raise ValueError("weight is required for type 'hg2' (the first lobe's, in [0, 1])")
+            w = _number(weight, "weight")
+            if not 0.0 <= w <= 1.0:
+                raise ValueError(f"weight must be in [0, 1] (the first lobe's), got {w:g}")
+            return {"type": kind, "g": (_asymmetry(g[0], "g[0]"), _asymmetry(g[1], "g[1]")), "weight": w}
+        return data
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler):
+        return {k: v for k, v in handler(self).items() if v is not None}
+
+    def lobes(self) -> tuple[tuple[float, float], ...]:
+        """((weight, g), ...): one lobe for isotropic and hg (isotropic is g = 0), two for hg2."""
+        if self.type == "hg2":
+            return ((self.weight, self.g[0]), (1.0 - self.weight, self.g[1]))
+        return ((1.0, float(self.g) if self.type == "hg" else 0.0),)
+
+    @property
+    def isotropic(self) -> bool:
+        """Whether the phase is the isotropic one (an hg of g = 0 is): it then renders, and is
+        cached, exactly as isotropic."""
+        return all(g == 0.0 for w, g in self.lobes() if w > 0.0)
+
+    def mean_cosine(self) -> float:
+        """g_eff, the mean cosine of the scattering angle: sum of weight * g over the lobes."""
+        return float(sum(w * g for w, g in self.lobes()))
+
+
 class MediumSpec(_Model):
-    """sigma_t(x) = density(x) * density_scale; albedo = sigma_s / sigma_t; isotropic phase."""
+    """sigma_t(x) = density(x) * density_scale; albedo = sigma_s / sigma_t; the phase function
+    (isotropic by default)."""
 
     density_scale: NonNegative = 1.0
     albedo: Unit | tuple[Unit, Unit, Unit] = 1.0
+    phase: PhaseSpec = PhaseSpec()
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler):
+        # A v1 medium dumps as it did before v1.1 (request hashes, job payloads): no phase
+        d = handler(self)
+        if self.phase.type == "isotropic":
+            d.pop("phase", None)
+        return d
 
     def albedo_rgb(self) -> Vec3:
         a = self.albedo
         return (a, a, a) if isinstance(a, float | int) else tuple(a)
+
+    def graph_medium(self) -> tuple[float, Vec3]:
+        """(density_scale', albedo') of the isotropic medium whose graph stands in for multiple
+        scattering (docs/method.md, "Anisotropic scattering"): the similarity relations
+        sigma_s' = sigma_s (1 - g), sigma_a' = sigma_a, i.e.
+
+            sigma_t' = sigma_t (1 - a g),   albedo' = a (1 - g) / (1 - a g),
+
+        with g the phase's mean cosine. sigma_t' must be grey (the graph depends on sigma_t
+        only), so ``a`` in sigma_t' is the mean of the channels; albedo' keeps sigma_s' exact per
+        channel (clamped to 1). The isotropic phase returns the medium itself."""
+        albedo = self.albedo_rgb()
+        if self.phase.isotropic:
+            return self.density_scale, albedo
+        g = self.phase.mean_cosine()
+        k = 1.0 - g * sum(albedo) / 3.0
+        return self.density_scale * k, tuple(min(1.0, a * (1.0 - g) / k) for a in albedo)
 
 
 class LightSpec(_Model):

@@ -7,7 +7,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from cloudgraph.options import ESTIMATORS, INTEGRATORS, QUALITIES
+from cloudgraph.options import ESTIMATORS, INTEGRATORS, PHASE_ESTIMATORS, QUALITIES
 from cloudgraph.scene import CameraSpec, LightSpec, MediumSpec, Scene, VolumeSpec
 
 from .validation import first_non_finite
@@ -33,6 +33,16 @@ class _Body(BaseModel):
         return data
 
 
+def check_phase_estimator(scene: Scene, integrator: str, estimator: str) -> None:
+    """An anisotropic phase needs an estimator that renders it (options.PHASE_ESTIMATORS)."""
+    phase = scene.medium.phase
+    if integrator == "graph" and not phase.isotropic and estimator not in PHASE_ESTIMATORS:
+        raise ValueError(
+            f"estimator: {estimator!r} renders the isotropic phase only, and scene.medium.phase is "
+            f"{phase.type!r}; use {' or '.join(repr(e) for e in PHASE_ESTIMATORS)}"
+        )
+
+
 class CacheCreate(_Body):
     """What a radiance cache depends on: the volume, the medium, the light and the depth."""
 
@@ -50,6 +60,11 @@ class RenderCreate(_Body):
     format: Literal["png", "exr"] = "png"
     quality: Quality = "default"
     exposure: float = Field(0.0, ge=-20, le=20, description="PNG exposure in stops")
+
+    @model_validator(mode="after")
+    def _phase(self) -> RenderCreate:
+        check_phase_estimator(self.scene, self.integrator, self.estimator)
+        return self
 
 
 class Orbit(_Body):
@@ -77,6 +92,7 @@ class AnimationCreate(_Body):
             raise ValueError("give exactly one of 'keyframes' (2 or more cameras) or 'orbit'")
         if self.keyframes is not None and len(self.keyframes) < 2:
             raise ValueError("keyframes needs at least 2 cameras")
+        check_phase_estimator(self.scene, self.integrator, self.estimator)
         return self
 
 

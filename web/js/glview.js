@@ -172,6 +172,8 @@ export class GLView {
       radianceGrid: radiance_ms.shape.slice(0, 3).reverse(),
       textureBytes: GLView.textureBytes(field),
       radianceKey: field.header.radiance_key,
+      phase: phaseLobes(field.header.phase),
+      toLight: normalize(field.light.direction.map((c) => -c)),
     };
   }
 
@@ -183,6 +185,9 @@ export class GLView {
     const gl = this.gl;
     const f = this.field;
     if (!f) return;
+    // The moving camera's texture holds isotropic single scattering (fieldtex.js): with a
+    // Henyey-Greenstein phase every frame takes the exact march, whose phase factor is per ray
+    fast = fast && !f.phase;
     const { program, loc: L } = fast ? this.programs.fast : this.programs.exact;
     const { forward, right, up } = cameraBasis(cam);
     const tanX = Math.tan((cam.fov * Math.PI) / 360);
@@ -200,6 +205,9 @@ export class GLView {
     gl.uniform1f(L.uTauScale, f.tauScale);
     gl.uniform3fv(L.uRadScale, f.radScale);
     gl.uniform3fv(L.uDirect, f.direct);
+    if (L.uAnisotropic) gl.uniform1i(L.uAnisotropic, f.phase ? 1 : 0);
+    if (L.uPhase) gl.uniform3fv(L.uPhase, f.phase || [0, 0, 1]);
+    if (L.uToLight) gl.uniform3fv(L.uToLight, f.toLight);
     gl.uniform3fv(L.uAlbedo, f.albedo);
     gl.uniform1f(L.uGain, 2 ** exposure);
     gl.uniform3fv(L.uBlockCells, f.blockCells);
@@ -290,6 +298,17 @@ export class GLView {
     }
     return out;
   }
+}
+
+/**
+ * The field header's phase (api.md: absent for the isotropic phase) as the shader's lobes
+ * [g1, g2, weight of the first], or null for the isotropic phase.
+ */
+export function phaseLobes(phase) {
+  if (!phase || phase.type === "isotropic") return null;
+  if (phase.type === "hg") return phase.g === 0 ? null : [phase.g, 0, 1];
+  if (phase.type === "hg2") return [phase.g[0], phase.g[1], phase.weight];
+  throw new Error(`the field's header has an unknown phase ${JSON.stringify(phase.type)}`);
 }
 
 /** The direction toward the light (against ``direction``, which light travels) in the unit cube

@@ -172,12 +172,17 @@ function showOverlay(text) {
   overlay.hidden = !text;
 }
 
-/** Same volume, density and quality: the same graph, so a new light is only a relight. */
+/**
+ * Same volume, density and quality: the same graph, so a new light is only a relight. An
+ * anisotropic phase's graph is that of its similarity-scaled medium, which albedo and phase set
+ * too (docs/method.md, "Anisotropic scattering").
+ */
 function sameGraph(a, b) {
   if (a == null || b == null) return false;
   const [va, ma, , qa] = JSON.parse(a);
   const [vb, mb, , qb] = JSON.parse(b);
-  return JSON.stringify(va) === JSON.stringify(vb) && ma.density_scale === mb.density_scale && qa === qb;
+  const graphOf = (m) => JSON.stringify(m.phase ? [m.density_scale, m.albedo, m.phase] : [m.density_scale]);
+  return JSON.stringify(va) === JSON.stringify(vb) && graphOf(ma) === graphOf(mb) && qa === qb;
 }
 
 /** Whether the viewport draws the field itself for this scene key; shows why not. */

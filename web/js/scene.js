@@ -1,4 +1,5 @@
-// The scene panel: volumes (list, upload), the up axis, medium, light and the quality preset.
+// The scene panel: volumes (list, upload), the up axis, medium (with its phase function), light
+// and the quality preset.
 // values() is the scene without its camera; onVolume(info) when another volume (or up axis) is
 // chosen, onChange() when anything else that the cache depends on changes.
 
@@ -13,6 +14,26 @@ export function defaultDensityScale(info) {
   const voxel = (vs[0] + vs[1] + vs[2]) / 3;
   if (!(vmax > 0) || !(voxel > 0)) return 1;
   return Number((1 / (vmax * voxel)).toPrecision(3));
+}
+
+/** Largest |g| of a Henyey–Greenstein lobe (scene spec v1.1, cloudgraph/scene.py). */
+export const MAX_G = 0.95;
+
+/**
+ * The scene spec's medium.phase from the panel's controls (type, g, g2, weight), or null for
+ * the isotropic phase (left out of the medium: a v1 scene, the same cache). Throws an Error
+ * naming the field.
+ */
+export function readPhase({ type, g, g2, weight }) {
+  if (type.value === "hg") return { type: "hg", g: readNumber(g, { min: -MAX_G, max: MAX_G }) };
+  if (type.value === "hg2") {
+    return {
+      type: "hg2",
+      g: [readNumber(g, { min: -MAX_G, max: MAX_G }), readNumber(g2, { min: -MAX_G, max: MAX_G })],
+      weight: readNumber(weight, { min: 0, max: 1 }),
+    };
+  }
+  return null;
 }
 
 function describeVolume(info) {
@@ -31,6 +52,8 @@ export class ScenePanel {
     this.volumeInfo = $("#volume-info");
     this.density = $("#density");
     this.albedo = $("#albedo");
+    this.phase = { type: $("#phase-type"), g: $("#phase-g"), g2: $("#phase-g2"), weight: $("#phase-weight") };
+    this.phaseRows = { g: $("#phase-g-row"), hg2: $("#phase-hg2-row") };
     this.az = $("#light-az");
     this.el = $("#light-el");
     this.irradiance = $("#irradiance");
@@ -64,6 +87,14 @@ export class ScenePanel {
     for (const input of [this.density, this.albedo, this.irradiance, this.quality]) {
       input.addEventListener("change", () => this.onChange());
     }
+    this.showPhase();
+    this.phase.type.addEventListener("change", () => {
+      this.showPhase();
+      this.onChange();
+    });
+    for (const input of [this.phase.g, this.phase.g2, this.phase.weight]) {
+      input.addEventListener("change", () => this.onChange());
+    }
     for (const input of [this.az, this.el]) {
       input.addEventListener("input", () => {
         const az = Number(this.az.value);
@@ -76,6 +107,14 @@ export class ScenePanel {
 
   volume() {
     return this.volumes.get(this.select.value) || null;
+  }
+
+  /** Shows the phase's inputs for its type: g for hg and hg2, g2 and the weight for hg2. */
+  showPhase() {
+    const type = this.phase.type.value;
+    this.phaseRows.g.hidden = type === "isotropic";
+    this.phaseRows.hg2.hidden = type !== "hg2";
+    this.phase.g.dataset.label = type === "hg2" ? "phase g1" : "phase g";
   }
 
   /** The world frame chosen for "up" (camera orbits and light elevation). */
@@ -146,12 +185,15 @@ export class ScenePanel {
     if (!info) throw new Error("no volume selected: upload or select one");
     const az = readNumber(this.az, { min: -360, max: 360 });
     const el = readNumber(this.el, { min: -90, max: 90 });
+    const medium = {
+      density_scale: readNumber(this.density, { min: 0 }),
+      albedo: readNumber(this.albedo, { min: 0, max: 1 }),
+    };
+    const phase = readPhase(this.phase);
+    if (phase) medium.phase = phase;
     return {
       volume: { id: info.id },
-      medium: {
-        density_scale: readNumber(this.density, { min: 0 }),
-        albedo: readNumber(this.albedo, { min: 0, max: 1 }),
-      },
+      medium,
       light: {
         type: "directional",
         direction: lightDirection(az, el, this.axes()),

@@ -2,12 +2,13 @@
 // radiance field, the march of the server's `field` estimator (cloudgraph/integrators/graph.py;
 // thesis Eq. 4.24 integrated segment by segment in closed form,
 // docs/method.md, "The radiance field"):
-//   L_in(x) = E exp(-tau_light(x)) / 4pi + L_ms(x)
+//   L_in(x) = E p(mu) exp(-tau_light(x)) + L_ms(x),  p = 1/4pi isotropic, else the header's
+//   Henyey-Greenstein phase at mu = to_light . d: constant along a ray, so per pixel
 //   tau_light: the grid's, or within uEdge of where the light enters the box the integral of
 //   sigma_t to the box (3 midpoints)
 //   per segment [t, t + dt]: sigma_t the mean of its end values, dtau = sigma_t dt; L_ms linear
 //   in optical depth between its end values M0, M1, tau_light too (a = dtau + tau1 - tau0):
-//     L += Tr albedo [E/4pi dtau (e^-tau0 - e^-(tau1 + dtau)) / a
+//     L += Tr albedo [E p dtau (e^-tau0 - e^-(tau1 + dtau)) / a
 //                     + M0 (1 - e^-dtau) + (M1 - M0) (1 - e^-dtau (1 + dtau)) / dtau];  Tr *= e^-dtau
 //   segments of at most uMaxDtau at the block's majorant, and uStep; the first (1 - u) of one
 //   long, with one jitter u per pixel; stop when Tr < 1e-3
@@ -52,7 +53,10 @@ uniform float uStep;          // largest segment, world units
 uniform float uSigmaScale;    // sigma_t per world unit = texel * uSigmaScale
 uniform float uTauScale;      // tau_light = texel * uTauScale
 uniform vec3 uRadScale;       // radiance_ms = texel * uRadScale
-uniform vec3 uDirect;         // irradiance / 4pi (isotropic phase)
+uniform vec3 uDirect;         // irradiance / 4pi (times phaseFactor per ray)
+uniform bool uAnisotropic;    // whether the phase is Henyey-Greenstein, not isotropic
+uniform vec3 uPhase;          // its lobes: g1, g2, the first's weight (g > 0 forward)
+uniform vec3 uToLight;        // unit direction toward the light, world
 uniform vec3 uAlbedo;
 uniform float uGain;          // 2^exposure
 uniform vec3 uBlockCells;     // majorant blocks per unit length on each axis (n / B)
@@ -76,6 +80,20 @@ float jitter(uvec2 px) {
   uint h = px.x * 0x8da6b343u ^ px.y * 0xd8163841u ^ uSeed * 0xcb1ab31fu;
   h ^= h >> 16; h *= 0x7feb352du; h ^= h >> 15; h *= 0x846ca68bu; h ^= h >> 16;
   return float(h >> 8) * (1.0 / 16777216.0);
+}
+
+// 4pi times the Henyey-Greenstein phase at cosine mu (1 at g = 0).
+float hg4pi(float g, float mu) {
+  float denom = 1.0 + g * g - 2.0 * g * mu;
+  return (1.0 - g * g) / (denom * sqrt(denom));
+}
+
+// The phase factor of single scattering for a ray along d: 4pi p(to_light . d), as the server's
+// field estimator takes it (1 for the isotropic phase).
+float phaseFactor(vec3 d) {
+  if (!uAnisotropic) return 1.0;
+  float mu = dot(uToLight, d);
+  return uPhase.z * hg4pi(uPhase.x, mu) + (1.0 - uPhase.z) * hg4pi(uPhase.y, mu);
 }
 
 float srgb(float x) {
@@ -136,6 +154,7 @@ void main() {
   float t = max(max(max(tlo.x, tlo.y), tlo.z), 0.0);
   float tEnd = min(min(thi.x, thi.y), thi.z);
   vec3 L = vec3(0.0);           // radiance accumulator
+  vec3 direct = uDirect * phaseFactor(d);  // E p: single scattering's, constant along the ray
   if (tEnd > t) {
     float Tr = 1.0;             // transmittance from the eye
     float frac = 1.0 - jitter(uvec2(gl_FragCoord.xy));  // the first segment's share of a step
@@ -176,7 +195,7 @@ void main() {
 #if !PACKED
       float a = dtau + f1.tau - f0.tau;
       float single = abs(a) < 1e-4 ? exp(-f0.tau) * (1.0 - 0.5 * a) : (exp(-f0.tau) - exp(-f1.tau - dtau)) / a;
-      seg_L += uDirect * dtau * single;
+      seg_L += direct * dtau * single;
 #endif
       L += Tr * uAlbedo * seg_L;
       Tr *= segTr;
