@@ -1,14 +1,21 @@
-"""Scale benchmark of one precompute over several workers (docs/measurements.md, "Scale"): the same cache
-built through the service by 1 and by N workers of one Dr.Jit thread each, each in a fresh
-service (kernels compiled in every run alike), and whether the cache files are the same bytes.
-Runs alternate (1, N, 1, N, ...) and the speed-up is the ratio of the medians: a shared
-machine's pace drifts over minutes, which a single pair of runs reads as a change of speed-up.
-Before each pair the machine's own capacity is measured: how much faster N copies of a CPU-bound
-probe finish together than one after another (2.0 on two idle cores; this 2-core VM gave
-1.5–2.0 over an hour), the ceiling of any speed-up measured beside it.
+"""Scale benchmark of one precompute over a Dask cluster (docs/cluster.md, "Measurements"): the
+same cache built through the service (one RQ worker, a Dask client) on a fresh
+``distributed.LocalCluster`` of 1 and of N worker processes, each run in a fresh service and
+cluster (kernels loaded in every run alike), and whether the cache files are the same bytes.
+Every process runs one Dr.Jit thread (``CLOUDGRAPH_WORKER_THREADS=1``) and every Dask worker one
+task at a time, so that N workers ask for N cores. The Dask workers have the variant set and the
+engine imported before the clock starts. Runs alternate (1, N, 1, N, ...) and the speed-up is
+the ratio of the medians: a shared machine's pace drifts over minutes, which a single pair of
+runs reads as a change of speed-up. Before each pair the machine's own capacity is measured: how
+much faster N copies of a CPU-bound probe finish together than one after another (2.0 on two
+idle cores), the ceiling of any speed-up measured beside it.
+
+``--threads`` measures instead how many threads one Dask worker should run beside Dr.Jit's pool:
+one worker with 1 or 2 threads (``--nthreads``) and Dr.Jit's pool of one thread per core or of
+one thread, the configurations alternated, medians reported.
 
     .venv/bin/python bench/scale_workers.py [--volume ../shared/data/smoke1.vdb] [--workers 2]
-        [--repeats 3]
+        [--repeats 3] [--threads]
 """
 
 from __future__ import annotations
@@ -30,34 +37,48 @@ from bench.harness import machine  # noqa: E402
 from tests.harness import job_of, start_service, wait_job  # noqa: E402
 
 
-def precompute_through(workers: int, volume: Path, quality: str, data: Path) -> tuple[float, dict, dict]:
+def precompute_through(
+    workers: int, volume: Path, quality: str, data: Path, nthreads: int = 1, drjit_threads: int = 1
+) -> tuple[float, dict, dict]:
     """(seconds from POST to finished, {file: bytes}, stage times) of one precompute on a fresh
-    service."""
+    service whose one RQ worker sends its chunks to a fresh cluster of ``workers`` Dask workers
+    (``nthreads`` each; ``drjit_threads`` Dr.Jit threads in every process, 0: one per core)."""
+    from distributed import LocalCluster
+
+    from cloudgraph_service.dask_chunks import client
+
     shutil.rmtree(data, ignore_errors=True)
-    svc = start_service(data, workers=workers, WORKER_THREADS=1)
-    try:
-        with svc.client() as c:
-            with open(volume, "rb") as f:
-                info = c.post("/v1/volumes", files={"file": (volume.name, f)}).json()
-            body = {
-                "volume": {"id": info["id"]},
-                "medium": {"density_scale": 1.0 / (info["value_range"][1] * max(info["voxel_size"]))},
-                "light": {"direction": [0.55, -0.25, -0.8]},
-                "quality": quality,
-            }
-            t0 = time.perf_counter()
-            r = c.post("/v1/caches", json=body)
-            assert wait_job(c, job_of(r), timeout=3600)["status"] == "finished"
-            seconds = time.perf_counter() - t0
-            stats = c.get(f"/v1/caches/{r.json()['id']}").json()["stats"]
-        files = {
-            str(p.relative_to(data / "cache")): p.read_bytes()
-            for p in (data / "cache").rglob("*")
-            if p.is_file() and p.parts[-3:-2] != ("runs",)
-        }
-        return seconds, files, {k: v for k, v in stats.items() if k.endswith("_s")}
-    finally:
-        svc.stop()
+    env = {"CLOUDGRAPH_WORKER_THREADS": str(drjit_threads)}
+    with LocalCluster(
+        n_workers=workers, threads_per_worker=nthreads, processes=True, dashboard_address=None, env=env
+    ) as cluster:
+        c = client(cluster.scheduler_address)  # sets the variant on every worker
+        c.run(__import__, "cloudgraph.precompute")
+        svc = start_service(
+            data, workers=1, WORKER_THREADS=drjit_threads, DASK_SCHEDULER=cluster.scheduler_address
+        )
+        try:
+            with svc.client() as http:
+                with open(volume, "rb") as f:
+                    info = http.post("/v1/volumes", files={"file": (volume.name, f)}).json()
+                body = {
+                    "volume": {"id": info["id"]},
+                    "medium": {"density_scale": 1.0 / (info["value_range"][1] * max(info["voxel_size"]))},
+                    "light": {"direction": [0.55, -0.25, -0.8]},
+                    "quality": quality,
+                }
+                t0 = time.perf_counter()
+                r = http.post("/v1/caches", json=body)
+                assert wait_job(http, job_of(r), timeout=3600)["status"] == "finished"
+                seconds = time.perf_counter() - t0
+                stats = http.get(f"/v1/caches/{r.json()['id']}").json()["stats"]
+        finally:
+            svc.stop()
+        c.close()
+    files = {
+        str(p.relative_to(data / "cache")): p.read_bytes() for p in (data / "cache").rglob("*") if p.is_file()
+    }
+    return seconds, files, {k: v for k, v in stats.items() if k.endswith("_s")}
 
 
 #: A CPU-bound stand-in for a worker's work (numpy sorts and Python), about a second alone
@@ -81,14 +102,7 @@ def machine_capacity(n: int) -> float:
     return n * alone / together
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--volume", default=str(ROOT.parent / "shared" / "data" / "smoke1.vdb"))
-    ap.add_argument("--quality", default="default")
-    ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--repeats", type=int, default=3)
-    args = ap.parse_args()
-    volume = Path(args.volume)
+def scale(args, volume: Path) -> dict:
     one_runs, n_runs, capacity, same = [], [], [], True
     for _ in range(args.repeats):
         capacity.append(round(machine_capacity(args.workers), 2))
@@ -98,11 +112,13 @@ def main() -> None:
         )
         one_runs, n_runs, same = one_runs + [round(one_s, 2)], n_runs + [round(n_s, 2)], same and one == many
     one_s, n_s = float(np.median(one_runs)), float(np.median(n_runs))
-    result = {
+    return {
         "machine": machine(),
         "volume": volume.name,
         "quality": args.quality,
-        "worker_threads": 1,
+        "scheduler": "dask distributed (LocalCluster of processes), one RQ worker as its client",
+        "drjit_threads": 1,
+        "dask_threads_per_worker": 1,
         "one_worker_s": round(one_s, 2),
         f"{args.workers}_workers_s": round(n_s, 2),
         "speedup": round(one_s / n_s, 2),
@@ -116,8 +132,44 @@ def main() -> None:
         f"{args.workers}_workers_stages": n_times,
         "files": sorted(one),
     }
+
+
+def threads(args, volume: Path) -> dict:
+    """One Dask worker: (its threads, Dr.Jit's threads) alternated; medians of the runs."""
+    configs = [(1, 0), (2, 0), (1, 1), (2, 1)]  # Dr.Jit threads 0: one per core
+    runs: dict[str, list[float]] = {f"nthreads={n} drjit_threads={d or 'per core'}": [] for n, d in configs}
+    files, same = None, True
+    for _ in range(args.repeats):
+        for (n, d), name in zip(configs, runs, strict=True):
+            s, got, _ = precompute_through(1, volume, args.quality, Path("/tmp/cloudgraph-threads"), n, d)
+            runs[name].append(round(s, 2))
+            same, files = same and (files is None or got == files), got
+    return {
+        "machine": machine(),
+        "volume": volume.name,
+        "quality": args.quality,
+        "dask_workers": 1,
+        "median_s": {name: float(np.median(r)) for name, r in runs.items()},
+        "runs_s": runs,
+        "same_bytes": same,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--volume", default=str(ROOT.parent / "shared" / "data" / "smoke1.vdb"))
+    ap.add_argument("--quality", default="default")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--threads", action="store_true", help="one Dask worker: its threads and Dr.Jit's")
+    args = ap.parse_args()
+    from cloudgraph.mitsuba_scene import set_variant
+
+    set_variant()  # the variant the Dask workers are given (cloudgraph_service/dask_chunks.py)
+    result = (threads if args.threads else scale)(args, Path(args.volume))
     print(json.dumps(result, indent=2))
-    out = ROOT / "bench" / "results" / f"scale-workers-{time.strftime('%Y%m%d-%H%M%S')}.json"
+    kind = "scale-threads" if args.threads else "scale-workers"
+    out = ROOT / "bench" / "results" / f"{kind}-{time.strftime('%Y%m%d-%H%M%S')}.json"
     out.write_text(json.dumps(result, indent=2))
 
 
