@@ -1,7 +1,10 @@
-"""Content-addressed storage of uploaded volumes, and least-recently-used eviction.
+"""Content-addressed storage of uploaded volumes, least-recently-used eviction, and the
+temporary files that dead writers leave.
 
 A volume's id is the sha256 of its file's bytes, so the same file uploaded twice is one volume.
-Files are written under a temporary name and renamed into place.
+Files are written under a temporary name and renamed into place. An upload's temporary files
+carry their writer's tag (:func:`writer_tag`: its host and process), so that whoever sweeps a
+shared folder knows which of them no live process can still be writing.
 """
 
 from __future__ import annotations
@@ -9,6 +12,8 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
+import socket
 import tempfile
 import time
 from pathlib import Path
@@ -28,8 +33,13 @@ class VolumeStore:
     def __init__(self, root: str | Path):
         self.root = Path(root)
 
-    def put(self, stream: BinaryIO, max_bytes: int, filename: str = "") -> tuple[dict, bool]:
+    def put(self, stream: BinaryIO, max_bytes: int, filename: str = "", tag: str = "") -> tuple[dict, bool]:
         """Stores an upload after checking that it is a readable volume.
+
+        Args:
+            tag: the writer's tag (:func:`writer_tag`) that the temporary copy carries: the
+                process whose death makes it stale (:func:`sweep_temporaries`); this one's when
+                empty.
 
         Returns:
             (info, created): created is False when the same bytes were stored before.
@@ -37,10 +47,9 @@ class VolumeStore:
         Raises:
             VolumeError: over ``max_bytes``, empty, or not a readable volume.
         """
-        self.root.mkdir(parents=True, exist_ok=True)
         h = hashlib.sha256()
         size = 0
-        fd, tmp = tempfile.mkstemp(dir=self.root, prefix=".upload.", suffix=".tmp")
+        fd, tmp = self.temporary("upload", tag)
         try:
             with os.fdopen(fd, "wb") as f:
                 while chunk := stream.read(CHUNK):
@@ -78,6 +87,11 @@ class VolumeStore:
             return info, True
         finally:
             Path(tmp).unlink(missing_ok=True)
+
+    def temporary(self, kind: str, tag: str = "") -> tuple[int, str]:
+        """(fd, path) of a new temporary file in the store, ``.<kind>.<tag>.<random>.tmp``."""
+        self.root.mkdir(parents=True, exist_ok=True)
+        return tempfile.mkstemp(dir=self.root, prefix=f".{kind}.{tag or writer_tag()}.", suffix=".tmp")
 
     def info(self, vid: str) -> dict | None:
         if not _is_hex_id(vid):
@@ -140,4 +154,79 @@ def evict_lru(root: str | Path, max_bytes: int, min_age_s: float = 300.0) -> lis
         p.unlink(missing_ok=True)
         total -= s.st_size
         removed.append(p)
+    return removed
+
+
+# ------------------------------------------------------------ temporary files of dead writers
+#: A temporary file of the stores: ``.<kind>.<host>-<pid>.<random>.tmp`` (VolumeStore.temporary).
+#: Untagged temporary files (an older version's) untouched this long are stale.
+UNTAGGED_AGE_S = 600.0
+_TAGGED = re.compile(r"\.(?P<kind>[a-z]+)\.(?P<host>[0-9a-f]+)-(?P<pid>\d+)\.[^.]+\.tmp")
+
+
+def host_id() -> str:
+    """This host, as writer tags and worker names carry it: its boot and PID namespace, hashed,
+    so that a process id read from a tag is one of this host's (containers that share a
+    hostname, or a machine, differ here)."""
+    parts = []
+    for p in ("/proc/sys/kernel/random/boot_id", "/proc/self/ns/pid"):
+        try:
+            parts.append(Path(p).read_text().strip() if p.endswith("id") else os.readlink(p))
+        except OSError:
+            parts.append(socket.gethostname())
+    return hashlib.sha256("|".join(parts).encode()).hexdigest()[:10]
+
+
+def writer_tag(pid: int | None = None) -> str:
+    """``<host>-<pid>``: the writer of a temporary file (this process unless ``pid``)."""
+    return f"{host_id()}-{pid or os.getpid()}"
+
+
+def process_alive(pid: int | None, since: float | None = None) -> bool:
+    """Whether process ``pid`` of this host still runs (no zombie) and is the one that was there
+    at ``since`` (Unix time): a process started later under a reused id is not it. True where
+    it cannot be told (no /proc)."""
+    if not pid:
+        return True
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except FileNotFoundError:
+        return False
+    except OSError:
+        return True
+    fields = stat.rsplit(")", 1)[1].split()  # after the command name, which may hold spaces
+    if fields[0] in ("Z", "X"):
+        return False
+    try:
+        lines = Path("/proc/stat").read_text().splitlines()
+        boot = next(float(line.split()[1]) for line in lines if line.startswith("btime"))
+        started = boot + int(fields[19]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, StopIteration, ValueError, IndexError):
+        return True
+    return since is None or started <= since + 2.0  # btime and clock ticks: a second or so
+
+
+def sweep_temporaries(root: str | Path, max_age_s: float = 24 * 3600) -> list[Path]:
+    """Removes the temporary files in ``root`` (not below) whose writer is gone: the tagged ones
+    of this host whose process has ended, those of any host untouched for ``max_age_s``, and
+    untagged ones (of an older version) untouched for ``UNTAGGED_AGE_S``.
+
+    Returns:
+        The files removed.
+    """
+    here, now, removed = host_id(), time.time(), []
+    for p in Path(root).glob(".*.tmp"):
+        m = _TAGGED.fullmatch(p.name)
+        try:
+            mtime = p.stat().st_mtime
+        except FileNotFoundError:
+            continue
+        if m is None:  # untagged: written before writers were named
+            stale = now - mtime > min(max_age_s, UNTAGGED_AGE_S)
+        else:
+            mine = m["host"] == here
+            stale = (mine and not process_alive(int(m["pid"]), mtime)) or now - mtime > max_age_s
+        if stale:
+            p.unlink(missing_ok=True)
+            removed.append(p)
     return removed

@@ -30,26 +30,32 @@ def get_volumes(request: Request) -> VolumeStore:
     return request.app.state.volumes
 
 
-#: Declares the Bearer scheme in the OpenAPI document; :func:`require_key` gives the 401 itself.
+#: Declares the Bearer scheme in the OpenAPI document; ``main.RequireKey`` gives the 401 itself,
+#: before a body is read, and :func:`require_key` checks again where the route is called.
 bearer = HTTPBearer(
     auto_error=False, description="an API key of CLOUDGRAPH_API_KEYS (needed when the service has keys)"
 )
+#: The 401's words and header, the same from the middleware and from the dependency.
+UNAUTHORIZED = "missing or wrong API key: send 'Authorization: Bearer <key>'"
+CHALLENGE = {"WWW-Authenticate": "Bearer"}
+
+
+def key_is_valid(authorization: str | None, keys: tuple[str, ...]) -> bool:
+    """Whether an ``Authorization`` header holds one of ``keys`` as a Bearer token (any key when
+    the service has none). Constant-time comparisons, on bytes: any header is comparable."""
+    if not keys:
+        return True
+    scheme, _, token = (authorization or "").partition(" ")
+    token = token.strip().encode() if scheme.lower() == "bearer" else b""
+    return any(hmac.compare_digest(token, k.encode()) for k in keys)
 
 
 def require_key(
     request: Request, credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)]
 ) -> None:
     """With CLOUDGRAPH_API_KEYS set, every /v1 route needs ``Authorization: Bearer <key>``."""
-    keys = request.app.state.settings.API_KEYS
-    if not keys:
-        return
-    token = (credentials.credentials.strip() if credentials is not None else "").encode()
-    if not any(hmac.compare_digest(token, k.encode()) for k in keys):  # bytes: any header is comparable
-        raise HTTPException(
-            401,
-            "missing or wrong API key: send 'Authorization: Bearer <key>'",
-            headers={"WWW-Authenticate": "Bearer"},
-        )
+    if not key_is_valid(request.headers.get("authorization"), request.app.state.settings.API_KEYS):
+        raise HTTPException(401, UNAUTHORIZED, headers=CHALLENGE)
 
 
 SettingsDep = Annotated[Settings, Depends(get_settings)]

@@ -55,6 +55,7 @@ ERRORS: dict[int, tuple[str, dict]] = {
         "The job store (Redis) is not reachable",
         {"Retry-After": _seconds("seconds to wait before trying again")},
     ),
+    507: ("A data volume that the request writes to is full, or not writable; the message says which", {}),
 }
 
 

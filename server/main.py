@@ -20,11 +20,11 @@ from rq import Queue
 from starlette.routing import compile_path
 
 from cloudgraph.errors import CloudgraphError
-from cloudgraph.store import VolumeStore
-from cloudgraph_service.errors import scrub
+from cloudgraph.store import VolumeStore, sweep_temporaries
+from cloudgraph_service.errors import scrub, storage_message
 from cloudgraph_service.settings import Settings
 
-from .deps import require_key
+from .deps import CHALLENGE, UNAUTHORIZED, key_is_valid, require_key
 from .errors import BodyTooLarge, InputError, error_responses
 from .routes import animations, caches, health, jobs, renders, volumes
 
@@ -122,6 +122,34 @@ class LimitBody:
         await self.app(scope, counted, send)
 
 
+class RequireKey:
+    """Answers a /v1 request without a valid API key (when the service has keys) with 401 before
+    anything reads or parses its body: an unauthenticated upload is refused at its headers, and
+    malformed JSON without a key is a 401, not a 422. A declared body up to ``LimitBody.DRAIN``
+    is read and dropped after the answer, so that a client that sends it whole before reading
+    sees the 401 on a connection that stays open; a larger one closes the connection."""
+
+    def __init__(self, app, settings: Settings):
+        self.app, self.keys = app, settings.API_KEYS
+
+    async def __call__(self, scope, receive, send):
+        path = scope.get("path", "")
+        if scope["type"] != "http" or not self.keys or not (path == "/v1" or path.startswith("/v1/")):
+            return await self.app(scope, receive, send)
+        headers = dict(scope["headers"])
+        if key_is_valid(headers.get(b"authorization", b"").decode("latin-1"), self.keys):
+            return await self.app(scope, receive, send)
+        declared = headers.get(b"content-length", b"").decode("latin-1")
+        small = declared.isdigit() and int(declared) <= LimitBody.DRAIN
+        chunked = b"chunked" in headers.get(b"transfer-encoding", b"").lower()
+        extra = {} if small or not (declared or chunked) else {"Connection": "close"}
+        response = JSONResponse({"detail": UNAUTHORIZED}, status_code=401, headers={**CHALLENGE, **extra})
+        await response(scope, receive, send)
+        if small:
+            while (await receive()).get("more_body"):
+                pass
+
+
 class AllowMethods:
     """Answers a method that a path does not take with 405 and ``Allow``, and OPTIONS with 204 and
     ``Allow``: the methods that the OpenAPI document gives the path. Without it the web page's
@@ -208,6 +236,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.queue = Queue(settings.QUEUE, connection=app.state.redis)
     app.state.volumes = VolumeStore(settings.volumes_dir)
     app.state.upload_slots = asyncio.Semaphore(2)  # volume checks at once (each a child process)
+    for p in sweep_temporaries(settings.volumes_dir):  # uploads of an API process that died
+        log.info("removed %s, left by an upload whose API process died", p.name)
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(request: Request, err: RequestValidationError):
@@ -220,6 +250,19 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.exception_handler(CloudgraphError)
     async def domain_error(request: Request, err: CloudgraphError):
         return JSONResponse({"detail": scrub(str(err))}, status_code=422)
+
+    # The data folders a request may write, by the name its errors give them
+    data = {"uploads": settings.volumes_dir, "cache": settings.cache_dir, "outputs": settings.outputs_dir}
+
+    @app.exception_handler(OSError)
+    async def storage_error(request: Request, err: OSError):
+        message = storage_message(err, data)
+        log.error("%s %s failed", request.method, request.url.path, exc_info=err)
+        if message is None:
+            message, status = "internal error; the service log has the details", 500
+        else:
+            status = 507
+        return JSONResponse({"detail": message}, status_code=status)
 
     @app.exception_handler(Exception)
     async def internal_error(request: Request, err: Exception):
@@ -236,7 +279,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             headers={"Retry-After": "5"},
         )
 
+    # Outermost last: counted, then a method the path does not take (405, OPTIONS), then the key
+    # (401), both before anything reads the body; then the body's limit
     app.add_middleware(LimitBody, settings=settings)
+    app.add_middleware(RequireKey, settings=settings)
     app.add_middleware(AllowMethods, openapi=app.openapi)
     app.add_middleware(CountRequests)
 

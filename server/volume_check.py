@@ -1,4 +1,5 @@
-"""``python -m server.volume_check FILE NAME``: reads an upload in a child process of the API.
+"""``python -m server.volume_check FILE NAME [API_PID]``: reads an upload in a child process of the
+API, and dies with it (an upload whose API died is not stored).
 
 A volume file is small and sparse, but densified it can be huge, and a corrupt one can crash
 the OpenVDB reader: both happen here, never in the API process. The process runs under a memory
@@ -7,17 +8,22 @@ bounding box is checked against ``MAX_VOXELS`` in Python integers (no overflow).
 is stored (``VolumeStore.put``) and its description gains, per float grid, the densest value
 and the voxel size that the API's density_scale check needs.
 
-Prints one JSON line: ``{"info": ..., "created": ...}`` or ``{"error": ..., "status": 413|422}``.
+Prints one JSON line: ``{"info": ..., "created": ...}`` or ``{"error": ..., "status": 413|422|507}``
+(507: the uploads volume is full or not writable).
 """
 
 from __future__ import annotations
 
+import ctypes
 import json
+import os
 import resource
+import signal
 import sys
 from pathlib import Path
 
 from cloudgraph.files import write_atomic
+from cloudgraph_service.errors import storage_message
 from cloudgraph_service.settings import Settings
 
 _FLOAT = ("float", "half")
@@ -67,8 +73,9 @@ def grid_stats(path: Path, name: str, max_voxels: int) -> dict[str, dict]:
     return out
 
 
-def check(path: Path, name: str, settings: Settings) -> dict:
-    """Checks and stores one upload; the JSON answer for the API."""
+def check(path: Path, name: str, settings: Settings, tag: str = "") -> dict:
+    """Checks and stores one upload; the JSON answer for the API. ``tag``: the API process's
+    writer tag, which the store's temporary copy carries (cloudgraph.store.sweep_temporaries)."""
     from cloudgraph.errors import VolumeError
     from cloudgraph.store import VolumeStore
 
@@ -78,26 +85,48 @@ def check(path: Path, name: str, settings: Settings) -> dict:
             is_vdb = f.read(3) != b"VOL"
         stats = grid_stats(path, name, settings.MAX_VOXELS) if is_vdb else {}
         with open(path, "rb") as f:
-            info, created = store.put(f, settings.MAX_UPLOAD_MB * 2**20, name)
+            info, created = store.put(f, settings.MAX_UPLOAD_MB * 2**20, name, tag)
+        if created:
+            for g in info["grids"]:
+                g.update(stats.get(g["name"], {}))
+            if not stats:  # a .vol: its one grid is the density
+                g = info["grids"][0]
+                g.update(value_max=info["value_range"][1], voxel_size=info["voxel_size"])
+            write_atomic(store.root / f"{info['id']}.json", json.dumps(info).encode())
     except VolumeError as err:
         return {"error": str(err), "status": 422}
     except MemoryError:
         return {"error": f"{name} needs more memory to read than the service allows", "status": 422}
-    if created:
-        for g in info["grids"]:
-            g.update(stats.get(g["name"], {}))
-        if not stats:  # a .vol: its one grid is the density
-            g = info["grids"][0]
-            g.update(value_max=info["value_range"][1], voxel_size=info["voxel_size"])
-        write_atomic(store.root / f"{info['id']}.json", json.dumps(info).encode())
+    except OSError as err:
+        message = storage_message(err, {"uploads": settings.volumes_dir})
+        if message is None:
+            raise
+        return {"error": message, "status": 507}
     return {"info": info, "created": created}
 
 
+def die_with(parent: int) -> None:
+    """Linux: this process gets SIGKILL when the API process ``parent`` dies, and ends at once if
+    it already has (the kernel was asked too late)."""
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent:
+        os._exit(1)
+
+
 def main() -> None:
+    parent = int(sys.argv[3]) if len(sys.argv) > 3 else 0
+    if parent:
+        die_with(parent)
     settings = Settings.from_env()
     limit = memory_limit(settings.MAX_VOXELS)
     resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
-    print(json.dumps(check(Path(sys.argv[1]), sys.argv[2], settings)))
+    from cloudgraph.store import writer_tag
+
+    tag = writer_tag(parent) if parent else ""
+    print(json.dumps(check(Path(sys.argv[1]), sys.argv[2], settings, tag)))
 
 
 if __name__ == "__main__":

@@ -34,20 +34,87 @@ log = logging.getLogger(__name__)
 
 
 class JobCancelled(Exception):
-    """The job was cancelled by a client (checked at every progress report)."""
+    """The job was cancelled by a client (checked at every progress report, every chunk of a
+    precompute's stages and before every file a job writes)."""
+
+
+def _current_job():
+    """The job being run, or None outside a job or while Redis is away (the worker process's
+    client waits for it: worker/process.py); a job goes on meanwhile, unchecked."""
+    job = get_current_job()
+    return None if job is None or getattr(job.connection, "away", False) else job
+
+
+def stop_if_cancelled() -> None:
+    """Raises JobCancelled when a client cancelled the current job."""
+    job = _current_job()
+    if job is not None and job.connection.exists(cancel_key(job.id)):
+        raise JobCancelled(f"job {job.id} was cancelled")
 
 
 def report(stage: str, fraction: float) -> None:
     """Progress into the current job's meta; raises JobCancelled when a cancel was asked for."""
-    job = get_current_job()
+    stop_if_cancelled()
+    job = _current_job()
     if job is None:
         return
-    if job.connection.exists(cancel_key(job.id)):
-        raise JobCancelled(f"job {job.id} was cancelled")
-    # Re-read the meta first: the API writes to it too (the cancel flag), and save_meta() writes
-    # the whole of it back.
-    job.get_meta(refresh=True).update(stage=stage, fraction=round(float(fraction), 4))
-    job.save_meta()
+
+    # The API writes to the meta too (the cancel flag): read, update and write it back in one
+    # transaction (tried again if the job changed meanwhile), so that no write of the API's is lost
+    def update(pipe) -> None:
+        raw = pipe.hget(job.key, "meta")
+        job.meta = job.serializer.loads(raw) if raw else {}
+        job.meta.update(stage=stage, fraction=round(float(fraction), 4))
+        pipe.multi()
+        pipe.hset(job.key, "meta", job.serializer.dumps(job.meta))
+
+    job.connection.transaction(update, job.key)
+
+
+def _checked(chunks):
+    """``chunks`` whose results are checked for a cancel as each arrives, so that a cancelled
+    precompute stops at its next chunk, in every stage (the stage's chunks still go out when
+    asked for, as ``chunks`` puts them)."""
+
+    def run(builder, stage: str, inputs: dict | None = None):
+        results = chunks(builder, stage, inputs)
+
+        def checked():
+            try:
+                for result in results:
+                    stop_if_cancelled()
+                    yield result
+            finally:
+                getattr(results, "close", lambda: None)()
+
+        return checked()
+
+    return run
+
+
+def _checked_store(caches, graph_key: str):
+    """The worker's cache store as a precompute sees it: it writes nothing once the job is
+    cancelled, and takes a cache whose graph file is gone for one without a field, so that the
+    precompute builds the graph again (the same bytes) rather than finishing without it."""
+    from cloudgraph.cache import CacheStore
+
+    class CheckedStore(CacheStore):
+        def save_graph(self, key, data):
+            stop_if_cancelled()
+            return super().save_graph(key, data)
+
+        def save_radiance(self, key, data):
+            stop_if_cancelled()
+            return super().save_radiance(key, data)
+
+        def save_field(self, key, data):
+            stop_if_cancelled()
+            return super().save_field(key, data)
+
+        def load_field(self, key):
+            return super().load_field(key) if self.graph_path(graph_key).is_file() else None
+
+    return CheckedStore(caches.root)
 
 
 def _cache(scene, volume, quality: str):
@@ -66,10 +133,12 @@ def _cache(scene, volume, quality: str):
     keys = cache_keys(scene, volume, params)
 
     def build(progress):
-        rkey = keys["radiance_key"]
-        found = s.caches.radiance_path(rkey).is_file() and s.caches.field_path(rkey).is_file()
+        gkey, rkey = keys["graph_key"], keys["radiance_key"]
+        paths = (s.caches.graph_path(gkey), s.caches.radiance_path(rkey), s.caches.field_path(rkey))
+        found = all(p.is_file() for p in paths)
+        store = _checked_store(s.caches, gkey)
         with precompute_chunks(None if found else s.settings.DASK_SCHEDULER) as chunks:
-            cache = precompute(scene, volume, quality, s.caches, progress, chunks)
+            cache = precompute(scene, volume, quality, store, progress, _checked(chunks))
         evict_lru(s.caches.root, int(s.settings.CACHE_MAX_GB * 2**30))
         return cache
 
@@ -147,6 +216,7 @@ def render_job(payload: dict) -> dict:
     renderer = _renderer_for(p.integrator, sc, volume, p.quality, p.radiance_key)
     image, seconds = render_image(sc, volume, renderer, p.estimator)
     path = Path(p.out)
+    stop_if_cancelled()  # nothing is written for a cancelled job
     if p.format == "exr":  # Mitsuba writes an EXR by path: under a temporary name, then renamed
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp" + path.suffix)
@@ -168,6 +238,7 @@ def frames_job(payload: dict) -> dict:
     out = Path(p.out_dir)
     for i, camera in enumerate(p.cameras):  # a loop over frames, each a whole vectorised render
         image, _ = render_image(parse_scene({**p.scene, "camera": camera}), volume, renderer, p.estimator)
+        stop_if_cancelled()
         write_atomic(out / FRAME_FILE.format(p.first + i), png_bytes(image, p.exposure))
         report("frames", (i + 1) / len(p.cameras))
     return {"frames": len(p.cameras), "first": p.first}

@@ -1,7 +1,11 @@
 """One worker process: an RQ worker that runs jobs in-process (warm caches and compiled kernels
-stay between jobs) and tells its supervisor which job it runs and until when.
+stay between jobs) and tells its supervisor which job it runs, until when, and when its job
+function has returned.
 
-Started, watched and restarted by the supervisor (``python -m worker``, see ``__main__.py``).
+Redis may go away under it (restarted, killed): every Redis command of this process then waits
+for Redis to answer again (:class:`WaitForRedis`), so a job in hand is neither failed nor
+dropped, and its result is stored once Redis is back. Started, watched and restarted by the
+supervisor (``python -m worker``, see ``__main__.py``).
 """
 
 from __future__ import annotations
@@ -9,33 +13,43 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import logging
+import multiprocessing
+import os
 import signal
 import threading
 import time
+from pathlib import Path
 
 from redis import Redis
+from redis.backoff import AbstractBackoff
+from redis.retry import Retry
 from rq import Queue, SimpleWorker
 from rq.job import JobStatus
-from rq.timeouts import JobTimeoutException
+from rq.timeouts import JobTimeoutException, UnixSignalDeathPenalty
 
 from cloudgraph_service.errors import public_message
 from cloudgraph_service.protocol import HEARTBEAT_GRACE_S, cancel_key, end_dependents
 from cloudgraph_service.settings import Settings
 
 log = logging.getLogger("cloudgraph.worker")
+#: Longest wait between two tries to reach Redis: a Redis that is back is used within this.
+REDIS_RETRY_MAX_S = 1.0
 
 
 class Running:
-    """What the worker process runs, shared with its supervisor: the job id and its deadline
-    (Unix time; 0 when idle). Plain shared memory, so the supervisor reads it even while the
-    job holds this process's interpreter in native code."""
+    """What the worker process runs, shared with its supervisor: the job id, its deadline (Unix
+    time; 0 when idle) and whether its job function has returned (what is left is storing the
+    result or the error). Plain shared memory, so the supervisor reads it even while the job
+    holds this process's interpreter in native code."""
 
     def __init__(self, ctx):
         self.job_id = ctx.Array("c", 128, lock=False)
         self.deadline = ctx.Value("d", 0.0, lock=False)
         self.budget = ctx.Value("d", 0.0, lock=False)
+        self.returned = ctx.Value("b", 0, lock=False)
 
     def start(self, job_id: str, budget: float) -> None:
+        self.returned.value = 0
         self.job_id.value = job_id.encode()[:127]
         self.budget.value = budget
         self.deadline.value = time.time() + budget
@@ -43,10 +57,84 @@ class Running:
     def clear(self) -> None:
         self.deadline.value = 0.0
         self.job_id.value = b""
+        self.returned.value = 0
 
     def current(self) -> tuple[str, float, float]:
         """(job id, deadline, budget); the id is empty when idle."""
         return self.job_id.value.decode(), self.deadline.value, self.budget.value
+
+
+class WaitForRedis(AbstractBackoff):
+    """The worker process's way through a Redis outage: every command is tried again until Redis
+    answers, waiting twice as long each time up to ``REDIS_RETRY_MAX_S``. An outage is logged
+    once when it starts and once when it ends; meanwhile :attr:`away` is true (a job's progress
+    reports are skipped: nothing could read them). One state for every connection of the
+    process (connections copy their retry policy: this object is shared, not copied)."""
+
+    def __init__(self):
+        self.since: float | None = None  # monotonic time of the outage's first failure
+        self._lock = threading.Lock()
+
+    def __deepcopy__(self, memo):
+        return self
+
+    @property
+    def away(self) -> bool:
+        return self.since is not None
+
+    def reset(self) -> None:
+        pass
+
+    def compute(self, failures: int) -> float:
+        with self._lock:
+            if self.since is None:
+                self.since = time.monotonic()
+                log.warning("redis is not reachable: waiting for it (a job in hand is kept)")
+        return min(REDIS_RETRY_MAX_S, 0.05 * 2**failures)
+
+    def answered(self) -> None:
+        """Redis answered a command: the end of an outage, if there was one."""
+        if self.since is not None:
+            with self._lock:
+                if self.since is not None:
+                    log.info("redis is back after %.1f s", time.monotonic() - self.since)
+                    self.since = None
+
+
+class PatientRedis(Redis):
+    """A Redis client whose commands wait for Redis through an outage (:class:`WaitForRedis`)."""
+
+    wait: WaitForRedis
+
+    @classmethod
+    def connect(cls, url: str) -> PatientRedis:
+        wait = WaitForRedis()
+        client = cls.from_url(url, retry=Retry(wait, -1))  # -1: tried until Redis answers
+        client.wait = wait
+        return client
+
+    @property
+    def away(self) -> bool:
+        """Redis did not answer the last try (a job skips its progress reports meanwhile)."""
+        return self.wait.away
+
+    def execute_command(self, *args, **options):
+        result = super().execute_command(*args, **options)
+        self.wait.answered()
+        return result
+
+
+class JobFunctionBudget(UnixSignalDeathPenalty):
+    """RQ's time budget around the job function, which also tells the supervisor when the
+    function has returned or raised: storing its result or error is not to be cut short by a
+    cancel (the supervisor's ``CANCEL_KILL_S``)."""
+
+    running: Running | None = None
+
+    def __exit__(self, *exc_info):
+        if self.running is not None and self.running.job_id.value:
+            self.running.returned.value = 1
+        return super().__exit__(*exc_info)
 
 
 class CloudgraphWorker(SimpleWorker):
@@ -56,6 +144,8 @@ class CloudgraphWorker(SimpleWorker):
 
     heartbeat_s = 30
     running: Running | None = None
+    death_penalty_class = JobFunctionBudget
+    volumes: dict[str, Path] | None = None  # the folders jobs write, by the name errors give them
 
     def get_heartbeat_ttl(self, job, working_time: float = 0.0) -> int:
         return self.heartbeat_s + HEARTBEAT_GRACE_S
@@ -92,8 +182,11 @@ class CloudgraphWorker(SimpleWorker):
         elif isinstance(err, JobTimeoutException):
             message = f"stopped: it ran past its time budget of {job.timeout} s"
         else:
-            message = public_message(err, job.id)
-        log.error("job %s failed", job.id, exc_info=exc_info)
+            message = public_message(err, job.id, self.volumes)
+        if message == "cancelled by a client":  # no traceback: nothing went wrong
+            log.info("job %s stopped: cancelled by a client", job.id)
+        else:
+            log.error("job %s failed", job.id, exc_info=exc_info)
         try:
             job.get_meta(refresh=True)
             job.meta["error"] = message
@@ -121,11 +214,15 @@ class CloudgraphWorker(SimpleWorker):
 
 
 def _die_with_parent() -> None:
-    """Linux: this process gets SIGKILL when its supervisor dies, so no worker is left orphaned."""
+    """Linux: this process gets SIGKILL when its supervisor dies, so no worker is left orphaned
+    (and it ends at once if the supervisor died before it could ask for that)."""
     try:
         ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
-        pass
+        return
+    parent = multiprocessing.parent_process()
+    if parent is not None and os.getppid() != parent.pid:
+        os._exit(1)
 
 
 def run(running: Running, name: str) -> None:
@@ -154,9 +251,10 @@ def run(running: Running, name: str) -> None:
 
     log.info("worker %s: variant %s, data %s, redis %s, dask %s", name, variant, settings.DATA_DIR,
              settings.REDIS_URL, settings.DASK_SCHEDULER or "none: precomputes run here")  # fmt: skip
-    conn = Redis.from_url(settings.REDIS_URL)
+    conn = PatientRedis.connect(settings.REDIS_URL)
     CloudgraphWorker.heartbeat_s = settings.HEARTBEAT_S
-    CloudgraphWorker.running = running
+    CloudgraphWorker.running = JobFunctionBudget.running = running
+    CloudgraphWorker.volumes = {"cache": settings.cache_dir, "outputs": settings.outputs_dir}
     # A short worker_ttl makes the blocking dequeue return often, so that maintenance (which
     # fails the jobs of dead workers) runs every HEARTBEAT_S seconds, not every 7 minutes.
     worker = CloudgraphWorker(

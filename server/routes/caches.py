@@ -28,9 +28,26 @@ FIELD_HEADERS = {
 }
 
 
+def missing_files(job: Job, settings) -> list[str]:
+    """The files that a finished precompute's cache lacks now (evicted or removed): some of
+    ``graph``, ``radiance``, ``field``. A cache without them all is not finished."""
+    keys = (job.return_value() or {}).get("keys") or {}
+    if not keys.get("graph_key") or not keys.get("radiance_key"):
+        return []
+    store = CacheStore(settings.cache_dir)
+    paths = {
+        "graph": store.graph_path(keys["graph_key"]),
+        "radiance": store.radiance_path(keys["radiance_key"]),
+        "field": store.field_path(keys["radiance_key"]),
+    }
+    return [name for name, p in paths.items() if not p.is_file()]
+
+
 def ensure_cache(body: CacheCreate, redis, queue, settings, volumes, prefix: str = "") -> tuple[str, Job]:
-    """The precompute job of a cache, enqueued once: an existing live or finished job is reused.
-    ``prefix`` names the fields as the request has them (``scene.`` for renders)."""
+    """The precompute job of a cache, enqueued once: an existing live or finished job is reused,
+    unless its cache has lost files since (then the precompute runs again, and makes only what
+    is missing: a lost field is baked again from the graph and the radiance). ``prefix`` names
+    the fields as the request has them (``scene.`` for renders)."""
     check_cache_parts(body.volume, body.medium, body.light, body.max_depth, settings, volumes, prefix)
     cid = cache_id(
         body.volume.model_dump(),
@@ -43,9 +60,11 @@ def ensure_cache(body: CacheCreate, redis, queue, settings, volumes, prefix: str
     # One request at a time per cache: two at once would both enqueue it, and it would run twice.
     with redis.lock(lock_key(job_id), timeout=LOCK_S, blocking_timeout=LOCK_S):
         job = fetch(redis, job_id)
-        if job is not None and status_of(job) not in (JobStatus.failed, JobStatus.canceled):
+        st = status_of(job) if job is not None else None
+        lost = missing_files(job, settings) if st == JobStatus.finished else []
+        if job is not None and st not in (JobStatus.failed, JobStatus.canceled) and not lost:
             return cid, job
-        if job is not None:  # failed or cancelled: start afresh, without the old cancel flag
+        if job is not None:  # failed, cancelled or incomplete: start afresh, no old cancel flag
             job.delete()
             redis.delete(cancel_key(job.id))
         check_capacity(queue, settings)
@@ -67,17 +86,25 @@ def ensure_cache(body: CacheCreate, redis, queue, settings, volumes, prefix: str
     return cid, job
 
 
-def cache_body(cid: str, job: Job) -> dict:
+def cache_body(cid: str, job: Job, settings) -> dict:
     d = describe(job)
+    status, error = d.status, d.error
+    lost = missing_files(job, settings) if status == JobStatus.finished else []
+    if lost:  # not finished any more: asking for it again (POST) rebuilds what is missing
+        status = JobStatus.failed
+        error = (
+            f"the {' and '.join(lost)} of cache {cid} {'is' if len(lost) == 1 else 'are'} gone "
+            "(evicted or removed); ask for the cache again (POST /v1/caches) to rebuild"
+        )
     return {
         "id": cid,
-        "status": d.status,
+        "status": status,
         "stage": d.stage,
         "fraction": d.fraction,
         "job": f"/v1/jobs/{job.id}",
         "keys": (d.result or {}).get("keys"),
         "stats": (d.result or {}).get("stats"),
-        "error": d.error,
+        "error": error,
     }
 
 
@@ -106,15 +133,17 @@ def create_cache(
 ):
     """Starts, or finds, the precompute for this (volume, medium, light, depth, quality)."""
     cid, job = ensure_cache(body, redis, queue, settings, volumes)
-    out = cache_body(cid, job)
+    out = cache_body(cid, job, settings)
     if out["status"] == JobStatus.finished:
         return JSONResponse(out, status_code=200)
     return JSONResponse(out, status_code=202, headers={"Location": f"/v1/jobs/{job.id}"})
 
 
 @router.get("/{cid}", response_model=CachePublic, responses=error_responses(404, 422, 503))
-def get_cache(cid: str, redis: RedisDep) -> dict:
-    return cache_body(cid, _cache_job(redis, cid))
+def get_cache(cid: str, redis: RedisDep, settings: SettingsDep) -> dict:
+    """The cache and its precompute; a finished one whose files have been lost since is failed,
+    with what is missing (POST it again to rebuild that)."""
+    return cache_body(cid, _cache_job(redis, cid), settings)
 
 
 @router.get(

@@ -8,13 +8,14 @@ import logging
 import os
 import shutil
 import sys
-import tempfile
+import time
 from pathlib import Path
 
 from fastapi import APIRouter, HTTPException, Request, UploadFile
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import JSONResponse
 
+from cloudgraph.store import VolumeStore
 from cloudgraph_service.errors import scrub, shown
 
 from ..deps import SettingsDep, VolumesDep
@@ -45,29 +46,44 @@ UPLOAD_BODY = {
 }
 
 
-def _spool(file, folder: Path, limit: int) -> tuple[str, int]:
-    """Copies the upload to a file of its own (the check reads it in another process)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".incoming.", suffix=".tmp")
-    with os.fdopen(fd, "wb") as out:
-        shutil.copyfileobj(file, out, 1 << 20)
-        size = out.tell()
+def _spool(file, store: VolumeStore) -> tuple[str, int]:
+    """Copies the upload to a file of its own (the check reads it in another process), tagged
+    with this process: if it dies, the next API process to start removes the file."""
+    fd, tmp = store.temporary("incoming")
+    try:
+        with os.fdopen(fd, "wb") as out:
+            shutil.copyfileobj(file, out, 1 << 20)
+            size = out.tell()
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
     return tmp, size
 
 
-async def _check(tmp: str, name: str, timeout: float) -> dict:
-    """Runs ``server.volume_check`` on the file; its JSON answer, or an error of our own."""
+async def _check(tmp: str, name: str, timeout: float, request: Request) -> dict | None:
+    """Runs ``server.volume_check`` on the file; its JSON answer, an error of our own, or None
+    when the client went away first (the check is stopped: nothing is stored). The check dies
+    with this process, too (it asks the kernel for that)."""
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1"}
     proc = await asyncio.create_subprocess_exec(
-        sys.executable, "-m", "server.volume_check", tmp, name,
+        sys.executable, "-m", "server.volume_check", tmp, name, str(os.getpid()),
         cwd=ROOT, env=env, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE,
     )  # fmt: skip
-    try:
-        out, err = await asyncio.wait_for(proc.communicate(), timeout)
-    except TimeoutError:
-        proc.kill()
-        await proc.wait()
-        return {"error": f"{name} took over {timeout:g} s to read; is it a volume?", "status": 422}
+    talk = asyncio.ensure_future(proc.communicate())
+    end = time.monotonic() + timeout
+    while not talk.done():
+        await asyncio.wait({talk}, timeout=min(0.25, max(0.0, end - time.monotonic())))
+        if talk.done():
+            break
+        gone = await request.is_disconnected()
+        if gone or time.monotonic() >= end:
+            proc.kill()
+            await talk
+            if gone:
+                log.info("upload of %s: the client went away during the check; nothing stored", name)
+                return None
+            return {"error": f"{name} took over {timeout:g} s to read; is it a volume?", "status": 422}
+    out, err = talk.result()
     try:
         return json.loads(out.decode().strip().splitlines()[-1])
     except (ValueError, IndexError):
@@ -84,7 +100,14 @@ async def _check(tmp: str, name: str, timeout: float) -> dict:
         201: {"headers": LOCATION},
         200: {"model": VolumePublic, "description": "The same bytes were stored before", "headers": LOCATION},
         **error_responses(
-            400, 413, 422, about={422: "No file, an empty one, or one that is not a readable volume"}
+            400,
+            413,
+            422,
+            507,
+            about={
+                422: "No file, an empty one, or one that is not a readable volume",
+                507: "The uploads volume is full, or not writable",
+            },
         ),
     },
     openapi_extra={"requestBody": UPLOAD_BODY},
@@ -98,7 +121,7 @@ async def upload_volume(
         raise HTTPException(422, "send the volume as a multipart form field named 'file'")
     limit = settings.MAX_UPLOAD_MB * 2**20
     name = Path(file.filename or "").name or "the upload"
-    tmp, size = await run_in_threadpool(_spool, file.file, settings.volumes_dir, limit)
+    tmp, size = await run_in_threadpool(_spool, file.file, volumes)
     try:
         if size > limit:
             raise HTTPException(413, f"upload is over the limit of {settings.MAX_UPLOAD_MB} MiB")
@@ -107,9 +130,11 @@ async def upload_volume(
                 422, "upload is empty: send a .vdb or .vol file in the multipart field 'file'"
             )
         async with request.app.state.upload_slots:
-            answer = await _check(tmp, name, settings.UPLOAD_CHECK_S)
+            answer = await _check(tmp, name, settings.UPLOAD_CHECK_S, request)
     finally:
         Path(tmp).unlink(missing_ok=True)
+    if answer is None:  # no one reads this answer
+        raise HTTPException(400, f"the client went away before {name} was checked; nothing was stored")
     if "error" in answer:
         raise HTTPException(answer["status"], scrub(answer["error"]))
     info = answer["info"]
