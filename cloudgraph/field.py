@@ -184,6 +184,7 @@ def bake_field(
     chunks,
     marched=None,
     bins=None,
+    progress=None,
 ) -> tuple[RadianceField, dict]:
     """Bakes the field of a radiance cache (a variant must be set).
 
@@ -197,11 +198,14 @@ def bake_field(
         chunks: runs the marches' chunks (:func:`field_chunk`; stages.py), as in ``build_graph``.
         marched: the light march's results (:func:`march_light`), if already put out.
         bins: the graph's nodes binned (:func:`~cloudgraph.spatial.node_bins`), if made.
+        progress: ``progress("field", fraction)`` is called between the bake's parts (a caller's
+            cancel raises from it).
 
     Returns:
         (field, stats): stats hold the bake's seconds per part.
     """
     volume = builder.volume
+    progress = progress or (lambda stage, fraction: None)
     t_start = time.perf_counter()
     u2w = np.asarray(volume.unit_to_world, float)
     shape, near, points, voxel = fp.shape, fp.near, fp.points, fp.voxel
@@ -230,6 +234,7 @@ def bake_field(
         k += 1
     q = _to_world(u2w, unit_points(ms_shape)[ms_near])
     G = _scatter(near, placed(looked, len(points), 3), (nz, ny, nx, 3))
+    progress("field", 0.2)
     inputs = {"points": q.astype(np.float32), "G": G, "step": np.array([MS_STEP * voxel])}
     gathered = chunks(builder, "field_ms", inputs)
     t_ms = time.perf_counter() - t0
@@ -239,7 +244,9 @@ def bake_field(
     t0 = time.perf_counter()
     tau = placed(marched, len(points) + len(fp.sub), 1)[:, 0]
     tau_grid = _scatter(near, tau[: len(points)], (nz, ny, nx))
+    progress("field", 0.4)
     tau_light = fit_depth(tau_grid, fp.sigma_t, fp.sub_coords, tau[len(points) :])
+    progress("field", 0.6)
     t_tau = time.perf_counter() - t0
     majorant = block_majorant(fp.sigma_t)
     packed = {
@@ -248,6 +255,7 @@ def bake_field(
     }
     t0 = time.perf_counter()
     radiance_ms = _scatter(ms_near, placed(gathered, len(q), 3), (*ms_shape[::-1], 3))
+    progress("field", 1.0)
     t_ms += time.perf_counter() - t0
 
     meta = {

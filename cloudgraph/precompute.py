@@ -245,6 +245,7 @@ def precompute(
             field_chunks,
             marched,
             next(iter(bins)),
+            lambda stage, f: progress(stage, 0.95 + 0.05 * f),
         )
         if not isotropic:  # the page's march applies it to single scattering (api.md)
             field.meta["phase"] = scene.medium.phase.model_dump()
