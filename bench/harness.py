@@ -38,7 +38,7 @@ from cloudgraph.render import GraphRenderer, render_volpath
 from cloudgraph.scene import CameraSpec, Scene, parse_scene
 from cloudgraph.volume import Volume, load_volume
 
-from .report import COLUMNS, CONVERGED_COLUMNS, machine, markdown, row_md, table
+from .report import COLUMNS, CONVERGED_COLUMNS, machine, markdown, row_md, table, write_results
 
 log = logging.getLogger(__name__)
 DATA = Path(os.environ.get("CLOUDGRAPH_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
@@ -334,12 +334,7 @@ def run_bench(
         "reference_spp": ref_spp,
         "rows": rows,
     }
-    out_dir.mkdir(parents=True, exist_ok=True)
-    stem = f"bench-{'quick' if quick else 'full'}-{time.strftime('%Y%m%d-%H%M%S')}"
-    (out_dir / f"{stem}.json").write_text(json.dumps(result, indent=2))
-    text = markdown(result)
-    (out_dir / f"{stem}.md").write_text(text)
-    print(text)
+    write_results(out_dir, "quick" if quick else "full", result, markdown(result))
     workdir.cleanup()
     return result
 
@@ -412,9 +407,6 @@ def run_converged(scenes: list[str] | None = None, out_dir: str | Path = "bench/
                 )
                 print(row_md(rows[-1], CONVERGED_COLUMNS), flush=True)
     result = {"machine": machine(), "quality": quality, "reference_spp": CONVERGED_REF_SPP, "rows": rows}
-    out_dir.mkdir(parents=True, exist_ok=True)
-    stem = f"bench-converged-{time.strftime('%Y%m%d-%H%M%S')}"
-    (out_dir / f"{stem}.json").write_text(json.dumps(result, indent=2))
     m = result["machine"]
     text = (
         f"# cloudgraph bench --converged\n\nMachine: {m['cpu']}, {m['cores']} cores; variant "
@@ -422,6 +414,5 @@ def run_converged(scenes: list[str] | None = None, out_dir: str | Path = "bench/
         f"reference volpath {CONVERGED_REF_SPP} spp (4x where its noise is over "
         f"{100 * REF_NOISE_MAX:.0f} %), RR off.\n\n" + table(rows, CONVERGED_COLUMNS)
     )
-    (out_dir / f"{stem}.md").write_text(text)
-    print(text)
+    write_results(out_dir, "converged", result, text)
     return result

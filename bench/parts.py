@@ -9,8 +9,6 @@ field's own error where gather is right, without the reference's noise).
 
 from __future__ import annotations
 
-import json
-import time
 from pathlib import Path
 
 from cloudgraph.cache import CacheStore
@@ -19,7 +17,7 @@ from cloudgraph.precompute import precompute
 from cloudgraph.render import GraphRenderer
 
 from .harness import CONVERGED_SPP, LIGHT, _scene, bench_scenes, cameras, reference
-from .report import machine, row_md, table
+from .report import machine, row_md, table, write_results
 
 #: The scenes of ``--parts`` when none are named: the optically thick ones, held-out included.
 PARTS_SCENES = ["dense", "thick", "holdout_thick"]
@@ -73,15 +71,11 @@ def run_parts(
                     rows.append(row)
                     print(row_md(row, PARTS_COLUMNS), flush=True)
     result = {"machine": machine(), "quality": quality, "reference_spp": ref_spp, "rows": rows}
-    out_dir.mkdir(parents=True, exist_ok=True)
-    stem = f"bench-parts-{time.strftime('%Y%m%d-%H%M%S')}"
-    (out_dir / f"{stem}.json").write_text(json.dumps(result, indent=2))
     m = result["machine"]
     text = (
         f"# cloudgraph bench --parts\n\nMachine: {m['cpu']}, {m['cores']} cores; variant "
         f"{m['variant']}; quality {quality}; gather {CONVERGED_SPP} spp; reference volpath "
         f"{ref_spp} spp, RR off; 64^2, 4x4-binned.\n\n" + table(rows, PARTS_COLUMNS)
     )
-    (out_dir / f"{stem}.md").write_text(text)
-    print(text)
+    write_results(out_dir, "parts", result, text)
     return result

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import json
 import os
 import platform
+import time
 from pathlib import Path
 
 
@@ -117,3 +119,14 @@ def markdown(result: dict) -> str:
     )
     field = "\n## field estimator\n\n" + table(result["rows"], FIELD_COLUMNS)
     return head + table(result["rows"], COLUMNS) + field
+
+
+def write_results(out_dir: Path, mode: str, result: dict, text: str) -> None:
+    """``bench-<mode>-<date>-<time>`` as .json (``result``) and .md (``text``) under ``out_dir``,
+    and ``text`` printed."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stem = f"bench-{mode}-{time.strftime('%Y%m%d-%H%M%S')}"
+    (out_dir / f"{stem}.json").write_text(json.dumps(result, indent=2))
+    (out_dir / f"{stem}.md").write_text(text)
+    print(text)
