@@ -29,7 +29,6 @@ point where sigma_t > 0 reads no other.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
@@ -39,10 +38,10 @@ from scipy.spatial import cKDTree
 
 from .chunks import placed
 from .field_file import RadianceField, pack_array
-from .light_depth import fit_depth, sub_samples
+from .field_grid import FieldPoints, to_world, unit_points
+from .light_depth import fit_depth
 from .spatial import NodeGrid, node_bins
 from .tracing import (
-    DensityField,
     block_majorant,
     cpu_threads,
     exponential_segment,
@@ -54,9 +53,6 @@ from .tracing import (
     towards_light,
 )
 
-#: Field grid points at most (the density grid's resolution up to this; coarser beyond, by one
-#: integer factor on every axis). 2^24 points: 64 MiB of float32 per scalar array in memory.
-MAX_POINTS = 1 << 24
 #: The multiple-scattering grid is this many times coarser per axis than the field grid, or
 #: coarser still until at most MS_MAX_POINTS of its points lie next to the medium. In a dense
 #: cloud L_ms changes within a voxel near lit surfaces: at the field grid's resolution the
@@ -92,73 +88,7 @@ TAU_STEP = 0.5
 TAU_MAX = 16.0
 
 
-# ------------------------------------------------------------------ grids
-
-
-def field_shape(volume_shape) -> tuple[int, int, int]:
-    """(nx, ny, nz) of the field grid: the density grid's, or coarser by one integer factor
-    until at most :data:`MAX_POINTS` points."""
-    n = np.asarray(volume_shape, np.int64)
-    f = 1
-    while np.prod(-(-n // f)) > MAX_POINTS:
-        f += 1
-    return tuple(int(v) for v in -(-n // f))
-
-
-def unit_points(shape) -> np.ndarray:
-    """(nz*ny*nx, 3) unit-cube texel centres of a grid of (nx, ny, nz), in C order (x fastest)."""
-    nx, ny, nz = shape
-    z, y, x = np.meshgrid(
-        (np.arange(nz) + 0.5) / nz, (np.arange(ny) + 0.5) / ny, (np.arange(nx) + 0.5) / nx, indexing="ij"
-    )
-    return np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
-
-
 # ------------------------------------------------------------------ baking
-
-
-@dataclass
-class FieldPoints:
-    """The field grid of a medium: its ``shape`` (nx, ny, nz), sigma_t at its points (nz, ny,
-    nx), which points are baked (``near``, flat: within one voxel of some density; the rest stay
-    zero) and where those are (``points``, (M, 3) world), ``voxel`` its smallest world step, and
-    the light march's sub-voxel samples in optically thick voxels (``sub``, (S, 3) world;
-    ``sub_coords``, the same in grid coordinates: light_depth.py). Made once, by the process that
-    bakes the field (:meth:`of`, precompute.py), from the medium alone; the bake's chunks get the
-    points they need as inputs."""
-
-    shape: tuple
-    sigma_t: np.ndarray
-    near: np.ndarray
-    points: np.ndarray
-    voxel: float
-    sub: np.ndarray
-    sub_coords: np.ndarray
-
-    @classmethod
-    def of(cls, volume, medium: DensityField) -> FieldPoints:
-        u2w = np.asarray(volume.unit_to_world, float)
-        shape = field_shape(volume.shape)
-        nx, ny, nz = shape
-        units = unit_points(shape)
-        if shape == tuple(volume.shape):  # texel centres: the voxels, read as they are
-            density = np.ascontiguousarray(volume.density.transpose(2, 1, 0), np.float32)
-            sigma_t = density * np.float32(medium.scale)
-        else:
-            sigma_t = np.array(medium.sigma_t(to_jit(mi.Point3f, _to_world(u2w, units))), np.float32)
-            sigma_t = sigma_t.reshape(nz, ny, nx)
-        # Trilinear interpolation at any point of the medium reads 8 grid points, all within one
-        # voxel of a non-zero one
-        near = maximum_filter(sigma_t > 0, size=3, mode="constant").ravel()
-        points = _to_world(u2w, units[near]).astype(np.float32)
-        voxel = float((np.linalg.norm(u2w[:3, :3], axis=0) / np.asarray(shape)).min())
-        sub_coords = sub_samples(sigma_t, voxel)
-        sub = _to_world(u2w, (sub_coords + 0.5) / np.asarray(shape)).astype(np.float32)
-        return cls(shape, sigma_t, near, points, voxel, sub, sub_coords)
-
-
-def _to_world(u2w: np.ndarray, u: np.ndarray) -> np.ndarray:
-    return u @ u2w[:3, :3].T + u2w[:3, 3]
 
 
 def march_light(builder, fp: FieldPoints, light_dir, chunks):
@@ -232,7 +162,7 @@ def bake_field(
         if ms_near.sum() <= MS_MAX_POINTS:
             break
         k += 1
-    q = _to_world(u2w, unit_points(ms_shape)[ms_near])
+    q = to_world(u2w, unit_points(ms_shape)[ms_near])
     G = _scatter(near, placed(looked, len(points), 3), (nz, ny, nx, 3))
     progress("field", 0.2)
     inputs = {"points": q.astype(np.float32), "G": G, "step": np.array([MS_STEP * voxel])}

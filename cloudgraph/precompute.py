@@ -20,8 +20,9 @@ from .build import GraphBuilder, build_graph
 from .cache import CacheStore, cache_keys
 from .chunks import placed
 from .errors import CacheError
-from .field import FieldPoints, bake_field, march_light
+from .field import bake_field, march_light
 from .field_file import RadianceField
+from .field_grid import FieldPoints
 from .graph import Graph
 from .graph_file import (
     pack_radiance,

@@ -419,7 +419,7 @@ def test_chunks_at_other_offsets_launch_only_kernels_already_compiled(variant, m
     # memory: as literals, or read where numpy put them, every chunk compiled its own kernel
     # (0.1 s each, about 7 s of a blender precompute on a fresh machine).
     from cloudgraph.build import GraphBuilder
-    from cloudgraph.field import FieldPoints
+    from cloudgraph.field_grid import FieldPoints
     from cloudgraph.lighting import LIGHTING_CHUNK
     from cloudgraph.params import build_params
     from cloudgraph.stages import n_chunks, run_chunk

@@ -21,7 +21,7 @@ LAYERS: list[set[str]] = [
     # walks of the medium, Mitsuba scenes, parameters, the volume store, test volumes
     {"tracing", "mitsuba_scene", "params", "store", "procedural"},
     # nodes, direct light, the spatial index, the field's file, cache keys and store
-    {"nodes", "lighting", "spatial", "field_file", "cache"},
+    {"nodes", "lighting", "spatial", "field_file", "field_grid", "cache"},
     # the graph build, the field bake, the integrator plugin (reads caches only)
     {"build", "field", "integrators.graph"},
     {"stages"},  # stage name -> chunk function
