@@ -8,7 +8,9 @@ engine imported before the clock starts. Runs alternate (1, N, 1, N, ...) and th
 the ratio of the medians: a shared machine's pace drifts over minutes, which a single pair of
 runs reads as a change of speed-up. Before each pair the machine's own capacity is measured: how
 much faster N copies of a CPU-bound probe finish together than one after another (2.0 on two
-idle cores), the ceiling of any speed-up measured beside it.
+idle cores), the ceiling of any speed-up measured beside it. Beside both, the bound that the
+one-worker runs set themselves: their run time with the worker's busy time (from Dask's task
+stream) shared by N and the rest as it was, the most N workers could gain on N idle cores.
 
 ``--threads`` measures instead how many threads one Dask worker should run beside Dr.Jit's pool:
 one worker with 1 or 2 threads (``--nthreads``) and Dr.Jit's pool of one thread per core or of
@@ -42,8 +44,10 @@ def precompute_through(
 ) -> tuple[float, dict, dict]:
     """(seconds from POST to finished, {file: bytes}, stage times) of one precompute on a fresh
     service whose one RQ worker sends its chunks to a fresh cluster of ``workers`` Dask workers
-    (``nthreads`` each; ``drjit_threads`` Dr.Jit threads in every process, 0: one per core)."""
-    from distributed import LocalCluster
+    (``nthreads`` each; ``drjit_threads`` Dr.Jit threads in every process, 0: one per core). The
+    stage times gain ``dask_busy_s``: the seconds the Dask workers spent running chunks, in all
+    (from the scheduler's task stream)."""
+    from distributed import LocalCluster, get_task_stream
 
     from cloudgraph_service.dask_chunks import client
 
@@ -68,9 +72,16 @@ def precompute_through(
                     "quality": quality,
                 }
                 t0 = time.perf_counter()
-                r = http.post("/v1/caches", json=body)
-                assert wait_job(http, job_of(r), timeout=3600)["status"] == "finished"
+                with get_task_stream(c) as tasks:
+                    r = http.post("/v1/caches", json=body)
+                    assert wait_job(http, job_of(r), timeout=3600)["status"] == "finished"
                 seconds = time.perf_counter() - t0
+                busy = sum(
+                    s["stop"] - s["start"]
+                    for t in tasks.data
+                    for s in t["startstops"]
+                    if s["action"] == "compute"
+                )
                 stats = http.get(f"/v1/caches/{r.json()['id']}").json()["stats"]
         finally:
             svc.stop()
@@ -78,7 +89,11 @@ def precompute_through(
     files = {
         str(p.relative_to(data / "cache")): p.read_bytes() for p in (data / "cache").rglob("*") if p.is_file()
     }
-    return seconds, files, {k: v for k, v in stats.items() if k.endswith("_s")}
+    return (
+        seconds,
+        files,
+        {k: v for k, v in stats.items() if k.endswith("_s")} | {"dask_busy_s": round(busy, 2)},
+    )
 
 
 #: A CPU-bound stand-in for a worker's work (numpy sorts and Python), about a second alone
@@ -103,10 +118,14 @@ def machine_capacity(n: int) -> float:
 
 
 def scale(args, volume: Path) -> dict:
-    one_runs, n_runs, capacity, same = [], [], [], True
+    one_runs, n_runs, capacity, same, bounds = [], [], [], True, []
     for _ in range(args.repeats):
         capacity.append(round(machine_capacity(args.workers), 2))
         one_s, one, one_times = precompute_through(1, volume, args.quality, Path("/tmp/cloudgraph-scale-1"))
+        # Amdahl: the one worker's busy time shared by N, the rest (the client's merges, the
+        # transport, waiting on either) as it was
+        busy = one_times["dask_busy_s"]
+        bounds.append(round(one_s / (one_s - busy + busy / args.workers), 2))
         n_s, many, n_times = precompute_through(
             args.workers, volume, args.quality, Path("/tmp/cloudgraph-scale-n")
         )
@@ -125,6 +144,8 @@ def scale(args, volume: Path) -> dict:
         "one_worker_runs_s": one_runs,
         f"{args.workers}_workers_runs_s": n_runs,
         "pair_speedups": [round(a / b, 2) for a, b in zip(one_runs, n_runs, strict=True)],
+        "speedup_bound": float(np.median(bounds)),
+        "speedup_bound_runs": bounds,
         "machine_capacity": float(np.median(capacity)),
         "machine_capacity_runs": capacity,
         "same_bytes": same,
