@@ -135,7 +135,7 @@ class Launched:
         wait_until(ready, timeout, "the service did not become ready", interval=0.05)
         return time.monotonic()
 
-    def stop(self, sig: int = signal.SIGTERM, group: bool = False, timeout: float = 30) -> float:
+    def stop(self, sig: int = signal.SIGTERM, group: bool = False, timeout: float = 60) -> float:
         """Stops the launcher with ``sig``, sent to its process group when ``group`` (as a
         terminal sends Ctrl-C's SIGINT); every process it started ends. Returns seconds taken."""
         if self.proc is None or self.proc.poll() is not None:
