@@ -170,14 +170,17 @@ class MediumSpec(_Model):
             sigma_t' = sigma_t (1 - a g),   albedo' = a (1 - g) / (1 - a g),
 
         with g the phase's mean cosine. sigma_t' must be grey (the graph depends on sigma_t
-        only), so ``a`` in sigma_t' is the mean of the channels; albedo' keeps sigma_s' exact per
-        channel (clamped to 1). The isotropic phase returns the medium itself."""
+        only), so ``a`` in sigma_t' is the mean of the channels, and albedo' keeps each
+        channel's absorption exact, sigma_a' = sigma_a: albedo'_c = (a_c - a g) / (1 - a g)
+        (the same for a grey albedo; at least 0). A channel that does not absorb stays so.
+        The isotropic phase returns the medium itself."""
         albedo = self.albedo_rgb()
         if self.phase.isotropic:
             return self.density_scale, albedo
         g = self.phase.mean_cosine()
-        k = 1.0 - g * sum(albedo) / 3.0
-        return self.density_scale * k, tuple(min(1.0, a * (1.0 - g) / k) for a in albedo)
+        a_g = g * sum(albedo) / 3.0
+        k = 1.0 - a_g
+        return self.density_scale * k, tuple(min(1.0, max(0.0, (a - a_g) / k)) for a in albedo)
 
 
 class LightSpec(_Model):

@@ -82,6 +82,18 @@ def test_similarity_scaling_keeps_absorption_and_reduced_scattering():
     scale, albedo = s.medium.graph_medium()
     assert scale * albedo[0] == pytest.approx(3.0 * 0.8 * (1 - 0.85))
     assert scale * (1 - albedo[0]) == pytest.approx(3.0 * 0.2)
+    # An RGB albedo: one grey sigma_t' (from the mean albedo), each channel's absorption exact
+    rgb = parse_scene(
+        {
+            **BASE,
+            "medium": {"density_scale": 3.0, "albedo": [1.0, 0.9, 0.8], "phase": {"type": "hg", "g": 0.6}},
+        }
+    )
+    scale, albedo = rgb.medium.graph_medium()
+    assert scale == pytest.approx(3.0 * (1 - 0.9 * 0.6))
+    np.testing.assert_allclose(
+        scale * (1 - np.array(albedo)), 3.0 * (1 - np.array([1.0, 0.9, 0.8])), atol=1e-12
+    )
 
 
 def test_the_schema_documents_the_phase():

@@ -76,3 +76,34 @@ def test_the_page_weights_single_scattering_by_the_phase_per_pixel(page, phase, 
         assert ref.mean() > 5, "the reference image is black: a useless test"
         assert rel_mae(img, ref) < 0.025
         assert rel_mae(plain, ref) > 0.1, "the phase changed little: a useless test"
+
+
+def test_the_scene_panel_reads_the_phase_as_the_spec_has_it(page):  # noqa: F811
+    r = page.evaluate(
+        """async () => {
+        const { readPhase } = await import('/js/scene.js');
+        const input = (value, label) => {
+          const el = document.createElement('input');
+          el.value = value;
+          el.dataset.label = label;
+          return el;
+        };
+        const controls = (type, g, g2 = '-0.3', weight = '0.8') => ({
+          type: { value: type }, g: input(g, 'phase g'), g2: input(g2, 'phase g2'),
+          weight: input(weight, 'phase weight') });
+        const errors = [];
+        for (const c of [controls('hg', '0.99'), controls('hg2', '0.5', '-0.3', '1.5'), controls('hg', '')]) {
+          try { readPhase(c); } catch (e) { errors.push(e.message); }
+        }
+        return { iso: readPhase(controls('isotropic', 'x')), hg: readPhase(controls('hg', '0.85')),
+                 hg2: readPhase(controls('hg2', '0.85')), errors };
+      }"""
+    )
+    assert r["iso"] is None  # left out of the medium: a v1 scene and its cache
+    assert r["hg"] == {"type": "hg", "g": 0.85}
+    assert r["hg2"] == {"type": "hg2", "g": [0.85, -0.3], "weight": 0.8}
+    assert r["errors"] == [
+        "phase g: must be between -0.95 and 0.95",
+        "phase weight: must be between 0 and 1",
+        "phase g: enter a number",
+    ]
