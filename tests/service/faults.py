@@ -148,7 +148,7 @@ class Launched:
             self.proc.send_signal(sig)
         try:
             try:
-                self.proc.wait(timeout)
+                self.proc.wait(min(timeout, 8.0))
             except subprocess.TimeoutExpired:
                 # Seen in the render module's teardown right after the API was killed and
                 # started again: the group's SIGINT went unanswered; SIGTERM to the launcher
