@@ -144,9 +144,18 @@ def _tau_light(header: dict, values: dict, p: np.ndarray) -> np.ndarray:
     return tau
 
 
-def reference_render(field: dict, camera: dict, exposure: float = 0.0, substeps: int = 4) -> np.ndarray:
+def hg4pi(g, mu):
+    """4pi times the Henyey-Greenstein phase at cosine ``mu``."""
+    return (1 - g * g) / (1 + g * g - 2 * g * mu) ** 1.5
+
+
+def reference_render(
+    field: dict, camera: dict, exposure: float = 0.0, substeps: int = 4, lobes=((1.0, 0.0),)
+) -> np.ndarray:
     """The field's image (H, W, 3) as 8-bit sRGB, by the spec's march with segments of
-    step / ``substeps`` at their midpoints (converges to the same integral as any jitter)."""
+    step / ``substeps`` at their midpoints (converges to the same integral as any jitter).
+    ``lobes``: (weight, g) of the phase; single scattering is weighted by 4pi p(mu) per ray,
+    mu = d . (towards the light) (1 for the isotropic default)."""
     h = field["header"]
     v = field["values"]
     m = np.asarray(h["unit_to_world"], float)
@@ -155,6 +164,8 @@ def reference_render(field: dict, camera: dict, exposure: float = 0.0, substeps:
         camera["eye"], camera["target"], camera["up"], camera["fov"], camera["width"], camera["height"]
     )
     d = d.reshape(-1, 3)
+    to_light = -np.asarray(h["light"]["direction"], float)
+    factor = sum(w * hg4pi(g, d @ (to_light / np.linalg.norm(to_light))) for w, g in lobes)
     o_u = inv[:3, :3] @ np.asarray(camera["eye"], float) + inv[:3, 3]
     d_u = d @ inv[:3, :3].T
     t0, t1 = box_interval(o_u, d_u, [0, 0, 0], [1, 1, 1])
@@ -175,7 +186,7 @@ def reference_render(field: dict, camera: dict, exposure: float = 0.0, substeps:
         tau = _tau_light(h, v, p)
         rad = _sample(v["radiance_ms"], p)
         a = np.exp(-s * dt[idx])
-        L_in = direct * np.exp(-tau)[:, None] + rad  # L_in = E exp(-tau) / 4pi + L_ms
+        L_in = direct * (factor[idx] * np.exp(-tau))[:, None] + rad  # E p exp(-tau) + L_ms
         L[idx] += (Tr[idx] * (1 - a))[:, None] * albedo * L_in
         Tr[idx] *= a
     x = np.clip(L * 2.0**exposure, 0, 1)
