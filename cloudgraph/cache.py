@@ -24,6 +24,7 @@ import numpy as np
 
 from . import ENGINE_FORMAT_VERSION
 from .files import write_atomic
+from .lights import Lights
 from .params import LIGHTING, BuildParams
 
 if TYPE_CHECKING:  # the API process imports this module; it must not load the renderer
@@ -60,20 +61,32 @@ def graph_key(vol_id: str, density_scale: float, build_params: dict) -> str:
 
 
 def radiance_key(
-    g_key: str, albedo, light_dir, irradiance, max_depth: int, lighting: dict, phase_lobes=None
+    g_key: str,
+    albedo,
+    light_dir,
+    irradiance,
+    max_depth: int,
+    lighting: dict,
+    phase_lobes=None,
+    lights=None,
 ) -> str:
     """``phase_lobes``: ((weight, g), ...) of an anisotropic phase (``PhaseSpec.lobes``), None for
-    the isotropic one, whose keys stay as they were before phases."""
-    unit = np.asarray(light_dir, float) / np.linalg.norm(light_dir)
+    the isotropic one, whose keys stay as they were before phases. ``lights``: the v1.1 light
+    list's :meth:`~cloudgraph.lights.Lights.key` (kinds and directions: such a cache holds unit
+    components), in place of the one light's direction and irradiance."""
     doc = {
         "v": ENGINE_FORMAT_VERSION,
         "graph": g_key,
         "albedo": np.broadcast_to(np.asarray(albedo, float), (3,)).round(9).tolist(),
-        "light_dir": unit.round(9).tolist(),
-        "irradiance": np.broadcast_to(np.asarray(irradiance, float), (3,)).round(9).tolist(),
         "max_depth": int(max_depth),
         "lighting": lighting,
     }
+    if lights is None:
+        unit = np.asarray(light_dir, float) / np.linalg.norm(light_dir)
+        doc["light_dir"] = unit.round(9).tolist()
+        doc["irradiance"] = np.broadcast_to(np.asarray(irradiance, float), (3,)).round(9).tolist()
+    else:
+        doc["lights"] = lights
     if phase_lobes is not None:
         doc["phase"] = np.asarray(phase_lobes, float).round(9).tolist()
     return _digest(doc)
@@ -87,7 +100,7 @@ def cache_keys(scene: Scene, volume: Volume, params: BuildParams) -> dict:
     vid = _VOLUME_IDS.get(volume)
     if vid is None:
         vid = _VOLUME_IDS[volume] = volume_id(volume)
-    phase = scene.medium.phase
+    phase, lights = scene.medium.phase, Lights.of(scene)
     # An anisotropic phase's graph is that of its similarity-scaled medium (docs/method.md,
     # "Anisotropic scattering"): keyed by that medium's density_scale, so that a new g (or, for
     # such a phase, a new albedo) builds its own graph
@@ -100,6 +113,7 @@ def cache_keys(scene: Scene, volume: Volume, params: BuildParams) -> dict:
         scene.render.max_depth,
         LIGHTING,
         None if phase.isotropic else phase.lobes(),
+        lights.key() if lights.basis else None,
     )
     return {"volume_id": vid, "graph_key": gkey, "radiance_key": rkey}
 

@@ -12,7 +12,11 @@ page's WebGL view: a small JSON header and float16 arrays, gzip-compressed
 
 Arrays: ``sigma_t`` (per world unit), ``tau_light``, ``radiance_ms`` (RGB, per-channel scale)
 and ``majorant`` (max sigma_t over blocks of :data:`~cloudgraph.tracing.BLOCK`^3 field voxels,
-dilated by one voxel: empty-space skipping). What the arrays hold: field.py.
+dilated by one voxel: empty-space skipping). What the arrays hold: field.py. A field of v1.1
+``lights`` has the header's ``lights`` in place of ``light``: per light component its type, its
+``direction`` and ``tau`` array (directional) and its ``ms`` array, at unit intensity; the
+first component's are ``tau_light`` and ``radiance_ms``, the others' ``tau_light_K`` and
+``radiance_ms_K`` after ``majorant`` (``tau_light`` is zero without a directional light).
 """
 
 from __future__ import annotations
@@ -55,14 +59,24 @@ class RadianceField:
     meta: dict
 
     packed: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
+    extra: dict = dataclasses.field(default_factory=dict)
+
+    def array(self, name: str) -> np.ndarray:
+        """An array by its file name: one of :data:`ARRAYS` or of ``extra``."""
+        return self.extra[name] if name in self.extra else getattr(self, name)
+
+    def names(self) -> tuple[str, ...]:
+        """The arrays' names in file order: :data:`ARRAYS`, then ``extra``'s."""
+        return ARRAYS + tuple(self.extra)
 
     def encode(self) -> bytes:
         """The gzip-compressed binary layout (module docstring): one gzip member whose deflate
         stream is the header's and each array's, each deflated on its own (:func:`_deflate`), so
         that arrays can be packed as soon as they are known."""
-        packed = {name: self.packed.get(name) or pack_array(name, getattr(self, name)) for name in ARRAYS}
+        names = self.names()
+        packed = {name: self.packed.get(name) or pack_array(name, self.array(name)) for name in names}
         table, offset = {}, 0
-        for name in ARRAYS:
+        for name in names:
             table[name] = {**packed[name][0], "offset": offset}  # relative to the data section
             offset += len(packed[name][1])
         header = {"format": "cloudgraph-field", "version": VERSION, **self.meta, "arrays": table}
@@ -78,9 +92,9 @@ class RadianceField:
         head = MAGIC + struct.pack("<I", len(text)) + text
         head += b" " * (start - len(head))
         crc, size = zlib.crc32(head), len(head)
-        for name in ARRAYS:
+        for name in names:
             crc, size = zlib.crc32(packed[name][1], crc), size + len(packed[name][1])
-        deflated = [_deflate(head)] + [packed[name][2] for name in ARRAYS]
+        deflated = [_deflate(head)] + [packed[name][2] for name in names]
         end = zlib.compressobj(1, zlib.DEFLATED, -15).flush()  # the final (empty) block
         return _GZIP_HEADER + b"".join(deflated) + end + struct.pack("<II", crc, size & 0xFFFFFFFF)
 
@@ -100,7 +114,8 @@ class RadianceField:
             out[name] = raw.astype(np.float32) * np.asarray(a["scale"], np.float32)
         for k in ("format", "version"):
             header.pop(k)
-        return cls(meta=header, **out)
+        extra = {name: out.pop(name) for name in list(out) if name not in ARRAYS}
+        return cls(meta=header, extra=extra, **out)
 
 
 #: The arrays of a field file, in file order.
@@ -115,7 +130,8 @@ def pack_array(name: str, a: np.ndarray) -> tuple[dict, bytes, bytes]:
     """One array of a field file: (header entry without its offset, float16 bytes padded to 16,
     the same deflated)."""
     a = np.asarray(a, np.float32)
-    peak = a.reshape(-1, a.shape[-1]).max(axis=0) if name == "radiance_ms" else a.max(initial=0.0)
+    rgb = name.startswith("radiance_ms")
+    peak = a.reshape(-1, a.shape[-1]).max(axis=0) if rgb else a.max(initial=0.0)
     scale = np.where(np.asarray(peak) > 0, peak, 1.0)
     raw = np.ascontiguousarray(a / scale, "<f2").tobytes()
     raw += b"\0" * (-len(raw) % 16)
@@ -123,7 +139,7 @@ def pack_array(name: str, a: np.ndarray) -> tuple[dict, bytes, bytes]:
     if name == "majorant":
         entry["block"] = BLOCK
     # radiance_ms is noisier than the others: deflate's level 6 finds a fifth more in it
-    return entry, raw, _deflate(raw, 6 if name == "radiance_ms" else 1)
+    return entry, raw, _deflate(raw, 6 if rgb else 1)
 
 
 def _deflate(data: bytes, level: int = 1) -> bytes:

@@ -19,10 +19,15 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .tracing import DensityField, jit_rng, ratio_tracking, to_jit, towards_light
+from .tracing import DensityField, jit_rng, ratio_tracking, to_jit, towards_light, uniform_sphere
 
-#: Nodes per chunk of the direct lighting (chunks may run on other workers, worker/chunks.py).
+#: Nodes per chunk of the direct lighting (chunks may run on other workers).
 LIGHTING_CHUNK = 1 << 15
+#: A uniform sky lights a node from every direction: its transmittance varies far more across
+#: directions than a directional light's across estimates, so it takes this many times the samples.
+SKY_SAMPLES = 4
+#: Seed offset between the light components of one node (docs/method.md, "Several lights").
+COMPONENT_SEED = 1_000_003
 
 
 def direct_radiance(
@@ -47,32 +52,56 @@ def direct_radiance(
     Returns:
         (N, 3) float64 radiance per node, phase function (1/4pi) included.
     """
-    n = len(positions)
-    if n == 0:
+    if len(positions) == 0:
         return np.zeros((0, 3))
-    m, lane = n * samples, first * samples
-    rng = jit_rng(m, seed + lane, lane)  # lane j: first * samples + j added to both
-    node = dr.arange(mi.UInt32, m) // samples
-    o = dr.gather(mi.Point3f, to_jit(mi.Point3f, positions), node)
     to_light = towards_light(light_dir)
-    Tr = ratio_tracking(field, o, mi.Vector3f(*(float(c) for c in to_light)), rng, mi.Bool(True))
-    # Mean over each node's estimates (in numpy: a fixed summation order on every backend)
-    transmittance = np.array(Tr, np.float64).reshape(n, samples).mean(axis=1)
+    transmittance = _mean_transmittance(
+        field, positions, lambda rng: mi.Vector3f(*(float(c) for c in to_light)), samples, seed, first
+    )
     e = np.broadcast_to(np.asarray(irradiance, float), (3,))
     return transmittance[:, None] * e[None, :] / (4.0 * np.pi)  # Eq. 4.22
 
 
+def sky_radiance(
+    field: DensityField, positions: np.ndarray, samples: int, seed: int, first: int
+) -> np.ndarray:
+    """(N, 3) in-scattered radiance of a uniform sky of radiance 1 at each node (isotropic phase):
+    int_S2 T_r(x, w) dw / 4pi, the mean transmittance to the box over ``samples`` uniform
+    directions per node."""
+    if len(positions) == 0:
+        return np.zeros((0, 3))
+    transmittance = _mean_transmittance(field, positions, uniform_sphere, samples, seed, first)
+    return np.repeat(transmittance[:, None], 3, axis=1)
+
+
+def _mean_transmittance(field, positions, direction, samples: int, seed: int, first: int) -> np.ndarray:
+    """(N,) mean of ``samples`` ratio-tracking estimates of T_r per node, along ``direction(rng)``."""
+    n = len(positions)
+    m, lane = n * samples, first * samples
+    rng = jit_rng(m, seed + lane, lane)  # lane j: first * samples + j added to both
+    node = dr.arange(mi.UInt32, m) // samples
+    o = dr.gather(mi.Point3f, to_jit(mi.Point3f, positions), node)
+    Tr = ratio_tracking(field, o, direction(rng), rng, mi.Bool(True))
+    # Mean over each node's estimates (in numpy: a fixed summation order on every backend)
+    return np.array(Tr, np.float64).reshape(n, samples).mean(axis=1)
+
+
 def lighting_chunk(field: DensityField, index: int, inputs: dict) -> tuple[np.ndarray, np.ndarray]:
-    """(first node, L_d) of one chunk of nodes: inputs ``positions``, ``light_dir``,
-    ``irradiance``, ``samples`` and ``seed``, as :func:`direct_radiance` takes them."""
+    """(first node, L_d) of one chunk of nodes: inputs ``positions``, ``light_dir`` and
+    ``irradiance`` ((3,) or (D, 3): one per directional component), ``sky`` (whether a sky
+    component follows, at radiance 1; absent: none), ``samples`` and ``seed``, as
+    :func:`direct_radiance` takes them. L_d is (n, 3 K), the K components side by side
+    (lights.py)."""
     a = index * LIGHTING_CHUNK
-    L_d = direct_radiance(
-        field,
-        np.asarray(inputs["positions"][a : a + LIGHTING_CHUNK]),
-        np.asarray(inputs["light_dir"]),
-        np.asarray(inputs["irradiance"]),
-        int(inputs["samples"][0]),
-        int(inputs["seed"][0]),
-        a,
-    )
-    return np.array([a]), L_d
+    positions = np.asarray(inputs["positions"][a : a + LIGHTING_CHUNK])
+    samples, seed = int(inputs["samples"][0]), int(inputs["seed"][0])
+    directions = np.asarray(inputs["light_dir"]).reshape(-1, 3)
+    irradiance = np.asarray(inputs["irradiance"]).reshape(-1, 3)
+    parts = [
+        direct_radiance(field, positions, d, e, samples, seed + k * COMPONENT_SEED, a)
+        for k, (d, e) in enumerate(zip(directions, irradiance, strict=True))
+    ]
+    if "sky" in inputs and int(inputs["sky"][0]):
+        seed_sky = seed + len(directions) * COMPONENT_SEED
+        parts.append(sky_radiance(field, positions, SKY_SAMPLES * samples, seed_sky, a))
+    return np.array([a]), np.concatenate(parts, axis=1)

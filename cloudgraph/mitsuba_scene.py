@@ -117,22 +117,30 @@ def scene_dict(scene: Scene, volume: Volume, integrator: dict | None = None) -> 
 
     if integrator is None:
         integrator = volpath_dict(scene.render.max_depth)
-    e = scene.light.irradiance_rgb()
+    lights = scene.light_list()
     return {
         "type": "scene",
         "integrator": integrator,
         "sensor": sensor_dict(scene.camera, volume, scene.render.spp, scene.render.seed),
-        "light": {
-            "type": "directional",
-            "direction": list(scene.light.unit_direction()),
-            "irradiance": {"type": "rgb", "value": list(e)},
-        },
+        # (a v1 scene's one light keeps its name: "light")
+        **{"light" if i == 0 else f"light_{i}": emitter_dict(light) for i, light in enumerate(lights)},
         "medium_box": {
             "type": "cube",
             "to_world": mi.ScalarTransform4f(box_to_world(volume).tolist()),
             "bsdf": {"type": "null"},
             "interior": medium_dict(volume, scene),
         },
+    }
+
+
+def emitter_dict(light) -> dict:
+    """A scene light as Mitsuba's emitter: ``directional``, or a ``sky`` as ``constant``."""
+    if light.type == "sky":
+        return {"type": "constant", "radiance": {"type": "rgb", "value": list(light.intensity_rgb())}}
+    return {
+        "type": "directional",
+        "direction": list(light.unit_direction()),
+        "irradiance": {"type": "rgb", "value": list(light.irradiance_rgb())},
     }
 
 

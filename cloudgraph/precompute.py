@@ -34,6 +34,7 @@ from .graph_file import (
     stored_positions,
     unpack_radiance,
 )
+from .lights import Lights
 from .params import LIGHTING, BuildParams, build_params
 from .scene import Scene
 from .stages import local_chunks
@@ -97,16 +98,21 @@ class RadianceCache:
         return self._nodes
 
 
-def lighting_inputs(positions: np.ndarray, scene: Scene, params: BuildParams) -> dict:
+def lighting_inputs(positions: np.ndarray, lights: Lights, params: BuildParams) -> dict:
     """What the direct-lighting chunks of a graph's nodes ((N, 3) positions) need (GraphBuilder's
-    ``lighting``)."""
-    return {
+    ``lighting``): one directional light as before v1.1, or each component (lights.py)."""
+    inputs = {
         "positions": positions,
-        "light_dir": np.asarray(scene.light.unit_direction()),
-        "irradiance": np.asarray(scene.light.irradiance_rgb(), float),
+        "light_dir": lights.directions,
+        "irradiance": lights.cached[: len(lights.directions)],
         "samples": np.array([LIGHTING["samples"]]),
         "seed": np.array([params.seed]),
     }
+    if not lights.basis:  # a v1 light: its inputs as they were
+        inputs["light_dir"], inputs["irradiance"] = lights.directions[0], lights.cached[0]
+    else:
+        inputs["sky"] = np.array([int(lights.sky)])
+    return inputs
 
 
 def precompute(
@@ -131,7 +137,7 @@ def precompute(
     params = build_params(volume, scene.medium.density_scale, quality, **build_overrides)
     keys = cache_keys(scene, volume, params)
     gkey, rkey = keys["graph_key"], keys["radiance_key"]
-    light_dir = np.asarray(scene.light.unit_direction())
+    lights = Lights.of(scene)
     # The graph's medium: the scene's, or for an anisotropic phase its similarity-scaled
     # isotropic medium (sigma_t' = sigma_t (1 - a g), albedo' = a (1 - g) / (1 - a g)). The
     # field is baked in the real medium, by a builder of its own; its chunks then run here, as
@@ -157,7 +163,7 @@ def precompute(
         # finished and written
         nonlocal lit, t_light
         t_light = time.perf_counter()
-        lit = chunks(builder, "lighting", lighting_inputs(positions, scene, params))
+        lit = chunks(builder, "lighting", lighting_inputs(positions, lights, params))
 
     if found is None or found_field is None:  # the graph is needed: read it, or build it
         builder = GraphBuilder(volume, graph_density, params)
@@ -171,7 +177,7 @@ def precompute(
             # points)
             nonlocal marched
             if marched is None and found_field is None:
-                marched = march_light(field_builder, field_points(), light_dir, field_chunks)
+                marched = march_light(field_builder, field_points(), lights.directions, field_chunks)
 
         if store.graph_path(gkey).is_file():
             march()
@@ -204,11 +210,13 @@ def precompute(
         (radiance, radiance_gather), rstats = found
     else:
         progress("lighting", 0.7)
-        L_d = placed(lit, graph.n_nodes, 3, np.float64)
+        # (N, 3 K): the K light components side by side, transported at once
+        L_d = placed(lit, graph.n_nodes, 3 * lights.count, np.float64)
         t_light = time.perf_counter() - t_light
         progress("transport", 0.85)
         t0 = time.perf_counter()
-        C, albedo, depth = graph.collision_matrix(), graph_albedo, scene.render.max_depth
+        C, depth = graph.collision_matrix(), scene.render.max_depth
+        albedo = np.tile(graph_albedo, lights.count)
 
         def still_wanted():  # progress() raises when the job was cancelled
             progress("transport", 0.85)
@@ -219,7 +227,7 @@ def precompute(
         else:
             L_gather = transport(C, L_d, albedo, depth - 1, LIGHTING["tol"], cancelled=still_wanted)[0]
         t_transport = time.perf_counter() - t0
-        packed = pack_radiance(L, L_gather)
+        packed = pack_radiance(stack_components(L, lights.count), stack_components(L_gather, lights.count))
         radiance, radiance_gather = unpack_radiance(packed)
         rstats = {
             **graph.stats,  # kept with the radiance, so that a reused cache needs no graph read
@@ -227,6 +235,8 @@ def precompute(
             "transport_s": round(t_transport, 3),
             "transport_iterations": iterations,
         }
+        if lights.basis:
+            rstats["light_components"] = lights.count
     if found is None:
         store.save_radiance(rkey, radiance_file(packed, rstats))
     if found_field is not None:
@@ -238,10 +248,9 @@ def precompute(
             field_builder,
             field_points(),
             graph,
-            radiance_gather,
+            radiance_gather.reshape(lights.count, graph.n_nodes, 3),
             scene.medium.albedo_rgb(),
-            light_dir,
-            scene.light.irradiance_rgb(),
+            lights,
             rkey,
             field_chunks,
             marched,
@@ -278,6 +287,13 @@ def precompute(
     if not isotropic:
         stats["similarity"] = {"density_scale": graph_density, "albedo": list(graph_albedo)}
     return RadianceCache(radiance, radiance_gather, field_data, keys, stats, store, graph)
+
+
+def stack_components(L: np.ndarray, k: int) -> np.ndarray:
+    """(K N, 3) node radiance, component after component, of (N, 3 K) with the K side by side
+    (the radiance file's rows: for one component, the (N, 3) array itself)."""
+    n = len(L)
+    return L if k == 1 else L.reshape(n, k, 3).transpose(1, 0, 2).reshape(k * n, 3)
 
 
 def _size(path) -> int:

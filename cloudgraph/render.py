@@ -9,12 +9,13 @@ import mitsuba as mi
 import numpy as np
 
 from .errors import SceneError
+from .lights import Lights
 from .mitsuba_scene import load_mitsuba_scene, sensor_dict, volpath_dict
 from .options import ESTIMATORS
 from .precompute import precompute
 from .scene import Scene
 from .spatial import NodeGrid
-from .tracing import DensityField
+from .tracing import DensityField, linear_texture, to_jit
 from .volume import Volume, load_volume
 
 
@@ -37,13 +38,14 @@ class GraphRenderer:
     One integrator is made per estimator when first asked for (the ``field`` estimator needs no
     node grid, the others no field), and one Mitsuba scene per (image size, estimator); a new
     camera only updates the sensor's parameters, which Mitsuba passes to the kernels as opaque
-    values.
+    values. A cache of v1.1 ``lights`` holds each light apart (lights.py): a render with new
+    intensities or colours of the same lights re-mixes them, with no solve and no recompile.
     """
 
     def __init__(self, cache, volume, scene, estimator: str = "gather", step: float | None = None):
         self.cache, self.volume, self.estimator, self.step = cache, volume, estimator, step
         self.medium = DensityField.from_volume(volume, scene.medium.density_scale)
-        self.light = (scene.medium.albedo_rgb(), scene.light.unit_direction(), scene.light.irradiance_rgb())
+        self.albedo, self.lights = scene.medium.albedo_rgb(), Lights.of(scene)
         self.phase, self.max_depth = scene.medium.phase, scene.render.max_depth
         self._integrators: dict = {}
         self._scenes: dict[tuple, tuple] = {}
@@ -59,21 +61,48 @@ class GraphRenderer:
 
             grid = field = None
             if estimator == "field":
-                field = FieldTextures.from_field(self.cache.field)
+                field = FieldTextures.from_field(self.cache.field, self.lights)
             else:
                 positions, search_radius = self.cache.nodes  # the counts stay on disk
-                radiance = self.cache.radiance_gather if estimator == "gather" else self.cache.radiance
-                grid = NodeGrid.build(positions, search_radius, radiance)
+                grid = NodeGrid.build(positions, search_radius, self._node_radiance(estimator))
             integrator = GraphIntegrator(mi.Properties())
             integrator.set_cache(
-                self.medium, *self.light, estimator, grid, field, self.cache.stats["radius"], self.step,
-                self.phase, self.max_depth,
+                self.medium, self.albedo, self.lights, estimator, grid, field, self.cache.stats["radius"],
+                self.step, self.phase, self.max_depth,
             )  # fmt: skip
             self._integrators[estimator] = integrator
         return self._integrators[estimator]
 
-    def render(self, camera, spp: int, seed: int = 0, estimator: str | None = None) -> np.ndarray:
-        """(H, W, 3) float32 linear radiance for a :class:`~cloudgraph.scene.CameraSpec`."""
+    def _node_radiance(self, estimator: str) -> np.ndarray:
+        """(N, 3) the nodes' radiance in the renderer's light (the components mixed)."""
+        radiance = self.cache.radiance_gather if estimator == "gather" else self.cache.radiance
+        if not self.lights.basis:
+            return radiance
+        return self.lights.mixed(radiance.reshape(self.lights.count, -1, 3))
+
+    def set_lights(self, lights: Lights) -> None:
+        """New intensities or colours for the cache's lights (:meth:`Lights.of` a scene whose
+        lights are those of the cache): the loaded estimators' node radiance and field are
+        re-mixed in place, nothing is solved or compiled again."""
+        if lights.basis != self.lights.basis or lights.key() != self.lights.key():
+            raise SceneError("these lights are not the cache's: a new light list needs its own precompute")
+        if not lights.basis or np.array_equal(lights.intensity, self.lights.intensity):
+            return
+        self.lights = lights
+        for estimator, integrator in self._integrators.items():
+            integrator.set_intensities(lights)
+            if estimator == "field":
+                integrator.field.ms = linear_texture(integrator.field.mixed_ms(self.cache.field, lights))
+            else:
+                integrator.grid.radiance = to_jit(mi.Color3f, self._node_radiance(estimator))
+
+    def render(
+        self, camera, spp: int, seed: int = 0, estimator: str | None = None, lights: Lights | None = None
+    ) -> np.ndarray:
+        """(H, W, 3) float32 linear radiance for a :class:`~cloudgraph.scene.CameraSpec`, in the
+        renderer's light or ``lights`` (the cache's lights, new intensities: :meth:`set_lights`)."""
+        if lights is not None:
+            self.set_lights(lights)
         estimator = estimator or self.estimator
         sensor = sensor_dict(camera, self.volume, spp, seed)
         # Stratified positions in the pixel: the box filter's integral with far less noise at a

@@ -206,6 +206,43 @@ class LightSpec(_Model):
         n = _norm(self.direction)
         return tuple(c / n for c in self.direction)
 
+    def intensity_rgb(self) -> Vec3:
+        return self.irradiance_rgb()
+
+
+class SkySpec(_Model):
+    """A uniform environment of ``radiance`` from every direction (Mitsuba's ``constant``), seen
+    behind and through the medium (scene spec v1.1)."""
+
+    type: Literal["sky"] = "sky"
+    radiance: NonNegative | tuple[NonNegative, NonNegative, NonNegative] = 1.0
+
+    @field_validator("radiance", mode="before")
+    @classmethod
+    def _intensity(cls, v):
+        # one message, not one per member of the scalar | RGB union
+        values = v if isinstance(v, list | tuple) else [v]
+        ok = len(values) in (1, 3) and all(
+            not isinstance(c, bool) and isinstance(c, int | float) and math.isfinite(c) and c >= 0 for c in values
+        )
+        if not ok or (isinstance(v, list | tuple) and len(v) != 3):
+            raise ValueError(f"must be a non-negative number or three of them (RGB), got {v!r}")
+        return v
+
+    def intensity_rgb(self) -> Vec3:
+        e = self.radiance
+        return (e, e, e) if isinstance(e, float | int) else tuple(e)
+
+
+#: Most lights in a scene's ``lights`` (scene spec v1.1).
+MAX_LIGHTS = 8
+Light = Annotated[LightSpec | SkySpec, Field(discriminator="type")]
+LIGHT_TYPES = {"directional": LightSpec, "sky": SkySpec}
+
+
+def _brief(v) -> str:
+    return f"{len(v)} of them" if isinstance(v, list | tuple) else repr(v)[:40]
+
 
 class CameraSpec(_Model):
     """Pinhole camera, look_at(eye, target, up), ``fov`` in degrees along the image width."""
@@ -246,13 +283,59 @@ class RenderSpec(_Model):
 
 
 class Scene(_Model):
-    """Scene spec v1."""
+    """Scene spec v1, and v1.1's ``lights``: a list of lights instead of the one ``light``."""
 
     volume: VolumeSpec
     medium: MediumSpec = MediumSpec()
     light: LightSpec = LightSpec()
+    lights: tuple[Light, ...] | None = Field(
+        None,
+        min_length=1,
+        max_length=MAX_LIGHTS,
+        description=f"v1.1: up to {MAX_LIGHTS} lights (directional, sky) instead of 'light', never both",
+    )
     camera: CameraSpec
     render: RenderSpec = RenderSpec()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _light_list(cls, data):
+        # Each light checked on its own, its errors named lights.<i>.<field> (a tagged union's
+        # errors would name the tag and every member)
+        if not isinstance(data, dict) or data.get("lights") is None:
+            return data
+        lights = data["lights"]
+        if not isinstance(lights, list | tuple) or not 1 <= len(lights) <= MAX_LIGHTS:
+            raise ValueError(f"lights must be a list of 1 to {MAX_LIGHTS} lights, got {_brief(lights)}")
+        for i, light in enumerate(lights):
+            kind = light.get("type") if isinstance(light, dict) else None
+            if kind not in LIGHT_TYPES:
+                raise ValueError(f"lights.{i}.type must be one of {', '.join(LIGHT_TYPES)}, got {kind!r}")
+            try:
+                LIGHT_TYPES[kind].model_validate(light)
+            except ValidationError as err:
+                raise ValueError(
+                    "; ".join(f"lights.{i}.{part}" for part in format_validation_error(err).split("; "))
+                ) from None
+        return data
+
+    @model_validator(mode="after")
+    def _one_light_field(self) -> Scene:
+        if self.lights is not None and "light" in self.model_fields_set:
+            raise ValueError("give 'light' (one directional light) or 'lights' (a list), not both")
+        return self
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler):
+        # A v1 scene dumps as it did before v1.1 (request hashes, job payloads): no lights; a
+        # v1.1 one without the unused default light
+        d = handler(self)
+        d.pop("light" if self.lights is not None else "lights", None)
+        return d
+
+    def light_list(self) -> tuple[LightSpec | SkySpec, ...]:
+        """The scene's lights: ``lights``, or the one ``light`` of a v1 scene."""
+        return self.lights if self.lights is not None else (self.light,)
 
 
 def format_validation_error(err: ValidationError) -> str:

@@ -8,7 +8,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from cloudgraph.options import ESTIMATORS, INTEGRATORS, PHASE_ESTIMATORS, QUALITIES
-from cloudgraph.scene import CameraSpec, LightSpec, MediumSpec, Scene, VolumeSpec
+from cloudgraph.scene import MAX_LIGHTS, CameraSpec, Light, LightSpec, MediumSpec, Scene, VolumeSpec
 
 from .validation import first_non_finite
 
@@ -44,13 +44,44 @@ def check_phase_estimator(scene: Scene, integrator: str, estimator: str) -> None
 
 
 class CacheCreate(_Body):
-    """What a radiance cache depends on: the volume, the medium, the light and the depth."""
+    """What a radiance cache depends on: the volume, the medium, the light (or v1.1's lights) and
+    the depth."""
 
     volume: VolumeSpec
     medium: MediumSpec = MediumSpec()
     light: LightSpec = LightSpec()
+    lights: tuple[Light, ...] | None = Field(
+        None,
+        min_length=1,
+        max_length=MAX_LIGHTS,
+        description="v1.1: the lights (directional, sky) instead of 'light'; their intensities "
+        "are mixed at render time, so any intensities of the same lights are this cache",
+    )
     max_depth: int = Field(-1, ge=-1)
     quality: Quality = "default"
+
+    @model_validator(mode="after")
+    def _one_light_field(self) -> CacheCreate:
+        if self.lights is not None and "light" in self.model_fields_set:
+            raise ValueError("give 'light' (one directional light) or 'lights' (a list), not both")
+        return self
+
+    def light_id(self) -> dict:
+        """What the cache's id holds of its light: the v1 light, or the v1.1 lights' kinds and
+        directions (intensities are mixed at render time: lights.py)."""
+        if self.lights is None:
+            return self.light.model_dump()
+        kinds = [{"type": li.type} for li in self.lights]
+        for kind, li in zip(kinds, self.lights, strict=True):
+            if li.type == "directional":
+                kind["direction"] = list(li.unit_direction())
+        return {"lights": kinds}
+
+    def light_part(self) -> dict:
+        """The scene's light fields of the cache's precompute job."""
+        if self.lights is None:
+            return {"light": self.light.model_dump(mode="json")}
+        return {"lights": [li.model_dump(mode="json") for li in self.lights]}
 
 
 class RenderCreate(_Body):

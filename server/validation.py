@@ -12,7 +12,7 @@ import math
 
 from fastapi import HTTPException
 
-from cloudgraph.scene import CameraSpec, LightSpec, MediumSpec, Scene, VolumeSpec
+from cloudgraph.scene import CameraSpec, LightSpec, MediumSpec, Scene, SkySpec, VolumeSpec
 from cloudgraph.store import VolumeStore
 from cloudgraph_service.errors import shown
 from cloudgraph_service.settings import Settings
@@ -70,10 +70,22 @@ def check_camera(camera: CameraSpec, settings: Settings, where: str) -> None:
         )
 
 
-def check_light(light: LightSpec, where: str) -> None:
+def check_light(light: LightSpec | SkySpec, where: str) -> None:
+    if light.type == "sky":
+        if max(light.intensity_rgb()) > MAX_IRRADIANCE:
+            raise InputError(f"{where}.radiance", f"must be at most {MAX_IRRADIANCE:g}")
+        return
     _vec(light.direction, f"{where}.direction", direction=True)
     if max(light.irradiance_rgb()) > MAX_IRRADIANCE:
         raise InputError(f"{where}.irradiance", f"must be at most {MAX_IRRADIANCE:g}")
+
+
+def check_lights(light: LightSpec, lights, where: str) -> None:
+    """The one ``light`` (``where`` + light) or each of v1.1's ``lights`` (``where`` + lights.i)."""
+    if lights is None:
+        check_light(light, f"{where}light")
+    for i, one in enumerate(lights or ()):
+        check_light(one, f"{where}lights.{i}")
 
 
 def grid_of(spec: VolumeSpec, volumes: VolumeStore, where: str) -> dict:
@@ -137,6 +149,7 @@ def check_cache_parts(
     volume: VolumeSpec,
     medium: MediumSpec,
     light: LightSpec,
+    lights,
     max_depth: int,
     settings: Settings,
     volumes: VolumeStore,
@@ -145,7 +158,7 @@ def check_cache_parts(
     """What a radiance cache depends on, with field names under ``prefix``."""
     grid = grid_of(volume, volumes, f"{prefix}volume")
     check_medium(medium, grid, volume.scale, settings, f"{prefix}medium")
-    check_light(light, f"{prefix}light")
+    check_lights(light, lights, prefix)
     check_depth(max_depth, settings, f"{prefix}render.max_depth" if prefix else "max_depth")
 
 
@@ -155,5 +168,12 @@ def check_scene(scene: Scene, settings: Settings, volumes: VolumeStore, where: s
     if scene.render.spp > settings.MAX_SPP:
         raise InputError(f"{where}.render.spp", f"{scene.render.spp} is over the limit of {settings.MAX_SPP}")
     check_cache_parts(
-        scene.volume, scene.medium, scene.light, scene.render.max_depth, settings, volumes, f"{where}."
+        scene.volume,
+        scene.medium,
+        scene.light,
+        scene.lights,
+        scene.render.max_depth,
+        settings,
+        volumes,
+        f"{where}.",
     )

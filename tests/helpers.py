@@ -102,3 +102,32 @@ def render_march(cache, volume, scene, spp: int = 16) -> np.ndarray:
 
 
 # ------------------------------------------------------------------ shared scenes
+
+
+def kernels_compiled_by_the_second(first, second):
+    """(results of first() and second(), the kernels second() compiled or loaded from Dr.Jit's
+    disk cache that first() did not launch)."""
+    import drjit as dr
+
+    def jit_kernels():
+        return [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
+
+    was = dr.flag(dr.JitFlag.KernelHistory)
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()  # clears it
+        a = first()
+        known = {k["hash"] for k in jit_kernels()}
+        b = second()
+        launched = jit_kernels()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, was)
+    assert launched, "the second call launched no kernel"
+    # cache_hit is also set for kernels loaded from Dr.Jit's disk cache (cache_disk), so a kernel
+    # seen for the first time in this process can look like a hit: compare hashes as well.
+    new = [
+        {key: k[key] for key in ("hash", "size", "cache_hit", "cache_disk", "operation_count")}
+        for k in launched
+        if k["hash"] not in known or not k["cache_hit"] or k["cache_disk"]
+    ]
+    return (a, b), new

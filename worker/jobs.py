@@ -16,6 +16,7 @@ from rq import get_current_job
 
 from cloudgraph.files import write_atomic
 from cloudgraph.image import png_bytes, write_exr
+from cloudgraph.lights import Lights
 from cloudgraph.scene import parse_scene
 from cloudgraph_service.protocol import (
     FRAME_FFMPEG,
@@ -200,7 +201,9 @@ def render_image(scene, volume, renderer=None, estimator: str = "gather") -> tup
     if renderer is not None:
         report("render", 0.9)
         t0 = time.perf_counter()
-        image = renderer.render(scene.camera, scene.render.spp, scene.render.seed, estimator=estimator)
+        # (a cache of v1.1 lights holds each light apart: this scene's intensities mix them)
+        lights = Lights.of(scene)
+        image = renderer.render(scene.camera, scene.render.spp, scene.render.seed, estimator, lights)
     else:
         report("render", 0.0)
         t0 = time.perf_counter()

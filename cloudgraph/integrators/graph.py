@@ -81,8 +81,9 @@ class FieldTextures:
     """A :class:`~cloudgraph.field.RadianceField` in Dr.Jit for the ``field`` estimator.
 
     Attributes:
-        tau: optical depth to the light, 1 channel; ms: radiance after the first scattering, 3
-            channels; both trilinear, clamped, over the unit cube.
+        tau: optical depth to each directional light, 1 channel each (a list, in the lights'
+            order); ms: radiance after the first scattering, 3 channels (the light components
+            mixed: :meth:`mixed_ms`); all trilinear, clamped, over the unit cube.
         step: march step, world units; max_dtau: a step's optical depth at most (at its block's
             majorant); edge: within this of where the light enters the box, single scattering
             integrates sigma_t to it (world units; field.py's header, read by the page too).
@@ -96,16 +97,29 @@ class FieldTextures:
     edge: float
     max_steps: int
 
+    @staticmethod
+    def mixed_ms(field, lights) -> np.ndarray:
+        """The field's radiance after the first scattering in the scene's light: a v1 field's,
+        or its components' mixed by the scene's intensities (lights.py)."""
+        if "lights" not in field.meta:
+            return field.radiance_ms
+        return lights.mixed(np.stack([field.array(c["ms"]) for c in field.meta["lights"]]))
+
     @classmethod
-    def from_field(cls, field) -> FieldTextures:
+    def from_field(cls, field, lights) -> FieldTextures:
         step, max_dtau = float(field.meta["step"]), float(field.meta["max_dtau"])
+        taus = (
+            [field.array(c["tau"]) for c in field.meta["lights"] if "tau" in c]
+            if "lights" in field.meta
+            else [field.tau_light]
+        )
         diag = float(np.linalg.norm(np.subtract(*field.meta["world_bbox"][::-1])))
         blocks = sum(-(-n // BLOCK) for n in field.sigma_t.shape)
         # the longest march: every segment at most max_dtau of the medium's majorant
         dense = float(field.majorant.max(initial=0.0)) * diag / max_dtau
         return cls(
-            tau=linear_texture(field.tau_light),
-            ms=linear_texture(field.radiance_ms),
+            tau=tuple(linear_texture(t) for t in taus),
+            ms=linear_texture(cls.mixed_ms(field, lights)),
             step=step,
             max_dtau=max_dtau,
             edge=float(field.meta["edge"]),
@@ -177,8 +191,7 @@ class GraphIntegrator(mi.SamplingIntegrator):
         self,
         medium: DensityField,
         albedo,
-        light_dir,
-        irradiance,
+        lights,
         estimator: str = "gather",
         grid: NodeGrid | None = None,
         field: FieldTextures | None = None,
@@ -188,9 +201,10 @@ class GraphIntegrator(mi.SamplingIntegrator):
         max_depth: int = -1,
         bounces: int | None = None,
     ) -> None:
-        """Hands the integrator its medium, the light, the phase function (a
+        """Hands the integrator its medium, its lights (a :class:`~cloudgraph.lights.Lights`:
+        directional lights and a uniform sky), the phase function (a
         :class:`~cloudgraph.scene.PhaseSpec`; None: isotropic), and a node grid (Monte Carlo
-        estimators) or a baked field (``field``).
+        estimators) or a baked field (``field``), each holding the lights' radiance mixed.
 
         ``gather`` with an anisotropic phase takes ``bounces`` scattering events exactly
         (default :func:`phase_bounces`) before the graph's radiance (which must then hold every
@@ -218,12 +232,29 @@ class GraphIntegrator(mi.SamplingIntegrator):
             raise ValueError("the field estimator takes a field, the others a node grid")
         self.medium, self.grid, self.field, self.estimator = medium, grid, field, estimator
         self.albedo = tuple(float(a) for a in albedo)
-        self.to_light = tuple(-float(c) for c in np.asarray(light_dir) / np.linalg.norm(light_dir))
-        # toward the light in the unit cube, per world unit
-        self.light_unit = tuple(float(c[0]) for c in medium.world_to_unit @ mi.Vector3f(*self.to_light))
-        self.irradiance = tuple(float(e) for e in np.broadcast_to(np.asarray(irradiance, float), (3,)))
+        # Per directional light: toward it, in world units and in the unit cube (per world unit)
+        self.to_light = [tuple(-float(c) for c in d) for d in lights.directions]
+        self.light_unit = [
+            tuple(float(c[0]) for c in medium.world_to_unit @ mi.Vector3f(*t)) for t in self.to_light
+        ]
+        self.has_sky = bool(lights.sky)
+        self.set_intensities(lights)
         self.eps2 = (0.05 * node_radius) ** 2  # keeps w_a finite at a node's centre
         self.step = float(step) if step else 0.5 * node_radius
+
+    def set_intensities(self, lights) -> None:
+        """The lights' intensities (the same lights as :meth:`set_cache`'s, new intensities or
+        colours), opaque: a new mix compiles nothing."""
+        self.irradiance = [
+            dr.opaque(mi.Color3f, tuple(e)) for e in lights.intensity[: len(lights.directions)]
+        ]
+        self.sky = dr.opaque(mi.Color3f, tuple(lights.sky_radiance))
+
+    def _background(self, seen: mi.Bool) -> mi.Color3f:
+        """The sky's radiance where ``seen`` (rays that leave the medium), else 0; 0 without a sky."""
+        if not self.has_sky:  # (a Python-level switch: no sky, no term in the kernel)
+            return mi.Color3f(0.0)
+        return dr.select(seen, self.sky, 0.0)
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         n = dr.width(ray.o)
@@ -240,14 +271,20 @@ class GraphIntegrator(mi.SamplingIntegrator):
         # An anisotropic phase has its own walk (_gather_phase)
         if self.lobes is not None:  # (a Python-level switch: never in a kernel)
             return self._gather_phase(o, d, rng, active)
+        # Several lights: one ratio-tracking estimate per directional light; a sky is seen where
+        # the flight to p'' leaves the medium (its single scattering, weight p / pdf = 1) and
+        # behind it where the camera's ray does
         t, collided = sample_collision(self.medium, o, d, rng, active)
         p = mi.Point3f(o + t * d)
-        Tr = ratio_tracking(self.medium, p, mi.Vector3f(*self.to_light), rng, collided)
-        L_ss = Tr * mi.Color3f(*self.irradiance) / (4.0 * dr.pi)
+        L_ss = mi.Color3f(0.0)
+        for to_light, E in zip(self.to_light, self.irradiance, strict=True):  # the lights, unrolled
+            Tr = ratio_tracking(self.medium, p, mi.Vector3f(*to_light), rng, collided)
+            L_ss += Tr * E / (4.0 * dr.pi)
         w = uniform_sphere(rng)
         t2, collided2 = sample_collision(self.medium, p, w, rng, collided)
         L_ms = mi.Color3f(*self.albedo) * self.grid.lookup(p + t2 * w, self.eps2, collided2)
-        return dr.select(collided, mi.Color3f(*self.albedo) * (L_ss + dr.select(collided2, L_ms, 0.0)), 0.0)
+        L_in = L_ss + dr.select(collided2, L_ms, self._background(collided))
+        return dr.select(collided, mi.Color3f(*self.albedo) * L_in, self._background(active))
 
     @dr.syntax
     def _gather_phase(self, o, d, rng, active):
@@ -258,20 +295,23 @@ class GraphIntegrator(mi.SamplingIntegrator):
         # of the similarity-scaled graph stands in for everything after (Eq. 4.25). The graph is
         # isotropic: its error is in where light goes next, which the phase remembers for
         # log(PHASE_MEMORY) / log|g_eff| events (phase_bounces), so those are taken exactly.
+        # A sky: seen behind the medium, and where a flight leaves it (weight p / pdf = 1).
         albedo = mi.Color3f(*self.albedo)
-        E, to_light = mi.Color3f(*self.irradiance), mi.Vector3f(*self.to_light)
         t, alive = sample_collision(self.medium, o, d, rng, active & (self.bounces > 0))
+        L = self._background(active & ~alive)  # Radiance accumulator
         p = mi.Point3f(o + t * d)  # Scattering point
         w_in = mi.Vector3f(d)  # Direction the path (from the camera) arrived at p in
-        L = mi.Color3f(0.0)  # Radiance accumulator
         beta = mi.Color3f(1.0)  # Path throughput: albedo per scattering event
         k = mi.UInt32(0)  # Scattering events taken
         while dr.hint(alive, label="gather_phase"):
             beta *= albedo
-            Tr = ratio_tracking(self.medium, p, to_light, rng, alive)
-            L += beta * Tr * E * hg_phase(self.lobes, dr.dot(to_light, w_in))
+            for to_light, E in zip(self.to_light, self.irradiance, strict=True):  # unrolled
+                tl = mi.Vector3f(*to_light)
+                Tr = ratio_tracking(self.medium, p, tl, rng, alive)
+                L += beta * Tr * E * hg_phase(self.lobes, dr.dot(tl, w_in))
             w = sample_phase(self.lobes, w_in, rng)
             t2, hit = sample_collision(self.medium, p, w, rng, alive)
+            L += beta * self._background(alive & ~hit)
             k += 1
             q = mi.Point3f(p + t2 * w)
             if dr.hint(self.tail, mode="scalar"):  # unbounded depth: the graph takes over at q
@@ -281,20 +321,20 @@ class GraphIntegrator(mi.SamplingIntegrator):
             alive &= hit & (k < self.bounces)
         return L
 
-    def _light_phase(self, d: mi.Vector3f) -> mi.Color3f:
-        """E p: the light's irradiance times the phase of its light scattered into -d, 1/4pi
-        isotropic, else p(mu) with mu = to_light . d (1 where the camera looks into the light:
-        forward scattering)."""
-        E = mi.Color3f(*self.irradiance)
+    def _light_phase(self, k: int, d: mi.Vector3f) -> mi.Color3f:
+        """E p: directional light k's irradiance times the phase of its light scattered into -d,
+        1/4pi isotropic, else p(mu) with mu = to_light . d (1 where the camera looks into the
+        light: forward scattering)."""
+        E = self.irradiance[k]
         if self.lobes is None:
             return E / (4.0 * dr.pi)
-        return E * hg_phase(self.lobes, dr.dot(mi.Vector3f(*self.to_light), d))
+        return E * hg_phase(self.lobes, dr.dot(mi.Vector3f(*self.to_light[k]), d))
 
     def _free_flight(self, o, d, rng, active):
         # Sample p' with pdf sigma_t T_r; the estimate of Eq. 4.24 is albedo L'_search(p')
         t, collided = sample_collision(self.medium, o, d, rng, active)
         L = self.grid.lookup(o + t * d, self.eps2, collided)
-        return dr.select(collided, mi.Color3f(*self.albedo) * L, 0.0)
+        return dr.select(collided, mi.Color3f(*self.albedo) * L, self._background(active))
 
     @dr.syntax
     def _march(self, o, d, rng, active):
@@ -315,33 +355,34 @@ class GraphIntegrator(mi.SamplingIntegrator):
             Tr *= seg_Tr
             t += dt
             active &= (t < t_end) & (Tr > 1e-4)
-        return L
+        return L + Tr * self._background(mi.Bool(True))
 
     def _field_at(self, p, active):
-        """(sigma_t, tau_light, L_ms) at world points p (field.py)."""
+        """(sigma_t, [tau_light per directional light], L_ms) at world points p (field.py)."""
         f = self.field
         pu = self.medium.world_to_unit @ mi.Point3f(p)
         ms = f.ms.eval(pu, active)
         sigma_t = self.medium.texture.eval(pu, active)[0] * self.medium.scale
-        return sigma_t, self._tau_light(p, pu, active), mi.Color3f(ms[0], ms[1], ms[2])
+        taus = [self._tau_light(k, pu, active) for k in range(len(self.to_light))]
+        return sigma_t, taus, mi.Color3f(ms[0], ms[1], ms[2])
 
-    def _tau_light(self, p, pu, active):
-        """Optical depth from world points p (pu in the unit cube) to the light: the grid's
+    def _tau_light(self, k, pu, active):
+        """Optical depth from points pu (in the unit cube) to directional light k: the grid's
         tau_light, or within the field's ``edge`` of where the light enters the medium box the
         integral of sigma_t itself (FIELD_EDGE_SAMPLES midpoints): the grid's values are at
         texel centres, and half a voxel in from the box's faces its texture clamps. A point on
         the box's surface (a camera ray's entry) counts as inside."""
-        lu = mi.Vector3f(*self.light_unit)
+        lu = mi.Vector3f(*self.light_unit[k])
         pc = dr.clip(pu, 0.0, 1.0)
         # (the light never leaves through the faces it runs parallel to)
         te = dr.select(dr.abs(lu) < 1e-9, 1e30, dr.maximum(-pc / lu, (1.0 - pc) / lu))
         t_exit = dr.maximum(dr.minimum(dr.minimum(te.x, te.y), te.z), 0.0)  # world units
         edge = t_exit <= self.field.edge
         tau = mi.Float(0.0)  # Optical depth to the box's face
-        for k in range(FIELD_EDGE_SAMPLES):  # a fixed quadrature, unrolled into the kernel
-            q = pc + ((k + 0.5) / FIELD_EDGE_SAMPLES) * t_exit * lu
+        for j in range(FIELD_EDGE_SAMPLES):  # a fixed quadrature, unrolled into the kernel
+            q = pc + ((j + 0.5) / FIELD_EDGE_SAMPLES) * t_exit * lu
             tau += self.medium.texture.eval(q, active & edge)[0]
-        grid = self.field.tau.eval(pu, active & ~edge)[0]
+        grid = self.field.tau[k].eval(pu, active & ~edge)[0]
         return dr.select(edge, tau * self.medium.scale * t_exit / FIELD_EDGE_SAMPLES, grid)
 
     @dr.syntax
@@ -358,13 +399,14 @@ class GraphIntegrator(mi.SamplingIntegrator):
         f = self.field
         t, t_end = self.medium.box_interval(o, d)
         albedo = mi.Color3f(*self.albedo)
-        E = self._light_phase(d)  # E p: constant along the ray for a directional light
+        # E p per directional light: constant along the ray
+        E = [self._light_phase(k, d) for k in range(len(self.to_light))]
         first = (1.0 - rng.next_float32()) * f.step  # one jitter per ray: the first segment's length
         L = mi.Color3f(0.0)  # Radiance accumulator
         Tr = mi.Float(1.0)  # Transmittance from the camera
         active = active & (t < t_end)
         t = dr.select(active, t, 0.0)  # rays that miss may have no finite entry point
-        sigma0, tau0, ms0 = self._field_at(o + t * d, active)  # values at the segment's start
+        sigma0, taus0, ms0 = self._field_at(o + t * d, active)  # values at the segment's start
         steps = mi.UInt32(0)  # Iteration cap: a ray takes each step and skips each block once
         started = mi.Bool(False)  # Whether the ray has reached a block with medium (and jittered)
         while dr.hint(active, label="field_march"):
@@ -376,18 +418,21 @@ class GraphIntegrator(mi.SamplingIntegrator):
             step = dr.minimum(f.step, f.max_dtau / dr.maximum(sigma_maj, 1e-12))
             jittered = dr.select(started, step, first * step / f.step)
             dt = step_length(empty, t, t_leave, t_end, jittered, 1e-3 * f.step)
-            sigma1, tau1, ms1 = self._field_at(o + (t + dt) * d, active)
+            sigma1, taus1, ms1 = self._field_at(o + (t + dt) * d, active)
             # One segment (nothing to add across an empty block)
             dtau = dr.select(empty, 0.0, 0.5 * (sigma0 + sigma1) * dt)
             seg_Tr, seg_ms = exponential_segment(dtau, ms0, ms1)
-            L += Tr * albedo * (E * single_segment(dtau, tau0, tau1) + seg_ms)
+            seg_ss = mi.Color3f(0.0)
+            for k in range(len(E)):  # the directional lights, unrolled
+                seg_ss += E[k] * single_segment(dtau, taus0[k], taus1[k])
+            L += Tr * albedo * (seg_ss + seg_ms)
             Tr *= seg_Tr
             t += dt
-            sigma0, tau0, ms0 = sigma1, tau1, ms1
+            sigma0, taus0, ms0 = sigma1, taus1, ms1
             steps += 1
             started |= ~empty
             active &= (t < t_end) & (Tr > FIELD_TR_MIN) & (steps < f.max_steps)
-        return L
+        return L + Tr * self._background(mi.Bool(True))
 
     def aov_names(self):
         return []

@@ -48,13 +48,11 @@ def ensure_cache(body: CacheCreate, redis, queue, settings, volumes, prefix: str
     unless its cache has lost files since (then the precompute runs again, and makes only what
     is missing: a lost field is baked again from the graph and the radiance). ``prefix`` names
     the fields as the request has them (``scene.`` for renders)."""
-    check_cache_parts(body.volume, body.medium, body.light, body.max_depth, settings, volumes, prefix)
+    check_cache_parts(
+        body.volume, body.medium, body.light, body.lights, body.max_depth, settings, volumes, prefix
+    )
     cid = cache_id(
-        body.volume.model_dump(),
-        body.medium.model_dump(),
-        body.light.model_dump(),
-        body.max_depth,
-        body.quality,
+        body.volume.model_dump(), body.medium.model_dump(), body.light_id(), body.max_depth, body.quality
     )
     job_id = f"cache-{cid}"
     # One request at a time per cache: two at once would both enqueue it, and it would run twice.
@@ -71,7 +69,7 @@ def ensure_cache(body: CacheCreate, redis, queue, settings, volumes, prefix: str
         scene = {
             "volume": body.volume.model_dump(mode="json"),
             "medium": body.medium.model_dump(mode="json"),
-            "light": body.light.model_dump(mode="json"),
+            **body.light_part(),
             "camera": {"eye": [0, 0, 1], "target": [0, 0, 0]},
             "render": {"max_depth": body.max_depth},
         }

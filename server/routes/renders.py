@@ -38,7 +38,7 @@ def precompute_for(scene, quality, redis, queue, settings, volumes):
     body = CacheCreate(
         volume=scene.volume,
         medium=scene.medium,
-        light=scene.light,
+        **({"light": scene.light} if scene.lights is None else {"lights": scene.lights}),
         max_depth=scene.render.max_depth,
         quality=quality,
     )

@@ -22,7 +22,7 @@ from cloudgraph.precompute import precompute
 from cloudgraph.procedural import sphere_volume
 from cloudgraph.volume import Volume
 
-from ..helpers import LIGHT, medium_scene, reference, render_march
+from ..helpers import LIGHT, kernels_compiled_by_the_second, medium_scene, reference, render_march
 
 
 def graph_arrays(g) -> list[np.ndarray]:
@@ -260,13 +260,14 @@ def test_changing_albedo_reuses_the_graph_and_recomputes_only_the_radiance(varia
     # relative.
     from cloudgraph.build import GraphBuilder
     from cloudgraph.chunks import placed
+    from cloudgraph.lights import Lights
     from cloudgraph.params import build_params
     from cloudgraph.precompute import lighting_inputs
     from cloudgraph.stages import local_chunks
 
     scene, params = medium_scene(volume, 0.5, albedo=0.6), build_params(volume, 0.5, "draft")
     lit = local_chunks(
-        GraphBuilder(volume, 0.5, params), "lighting", lighting_inputs(dark.graph.positions, scene, params)
+        GraphBuilder(volume, 0.5, params), "lighting", lighting_inputs(dark.graph.positions, Lights.of(scene), params)
     )
     L_d = placed(lit, dark.graph.n_nodes, 3, np.float64)
     C = sp.csc_matrix(dark.graph.collision_matrix())
@@ -367,35 +368,6 @@ def test_the_graph_file_is_compact_and_exact_where_transport_needs_it(sphere, mo
 
 
 # ------------------------------------------------------------------ 6. kernel reuse
-
-
-def kernels_compiled_by_the_second(first, second):
-    """(results of first() and second(), the kernels second() compiled or loaded from Dr.Jit's
-    disk cache that first() did not launch)."""
-    import drjit as dr
-
-    def jit_kernels():
-        return [k for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT]
-
-    was = dr.flag(dr.JitFlag.KernelHistory)
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    try:
-        dr.kernel_history()  # clears it
-        a = first()
-        known = {k["hash"] for k in jit_kernels()}
-        b = second()
-        launched = jit_kernels()
-    finally:
-        dr.set_flag(dr.JitFlag.KernelHistory, was)
-    assert launched, "the second call launched no kernel"
-    # cache_hit is also set for kernels loaded from Dr.Jit's disk cache (cache_disk), so a kernel
-    # seen for the first time in this process can look like a hit: compare hashes as well.
-    new = [
-        {key: k[key] for key in ("hash", "size", "cache_hit", "cache_disk", "operation_count")}
-        for k in launched
-        if k["hash"] not in known or not k["cache_hit"] or k["cache_disk"]
-    ]
-    return (a, b), new
 
 
 @pytest.mark.parametrize("estimator", ["gather", "field"])

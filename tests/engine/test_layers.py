@@ -18,8 +18,8 @@ LAYERS: list[set[str]] = [
     # the scene spec, images and metrics, the VDB header, the graph file's format
     {"vdb", "scene", "image", "metrics", "graph_file", "light_depth"},
     {"volume"},
-    # walks of the medium, Mitsuba scenes, parameters, the volume store, test volumes
-    {"tracing", "mitsuba_scene", "params", "store", "procedural"},
+    # walks of the medium, Mitsuba scenes, parameters, the volume store, test volumes, lights
+    {"tracing", "mitsuba_scene", "params", "store", "procedural", "lights"},
     # nodes, direct light, the spatial index, the field's file, cache keys and store
     {"nodes", "lighting", "spatial", "field_file", "field_grid", "cache"},
     # the graph build, the field bake, the integrator plugin (reads caches only)

@@ -1,0 +1,166 @@
+"""Several lights and a sky on the bench (docs/measurements.md, "Several lights").
+
+Per scene, light setup (sun + uniform sky, two suns), camera (side- and back-lit to the sun) and
+albedo: volpath with Mitsuba's emitters (Russian roulette off) as the reference, ``gather`` at
+1024 spp and ``field`` at 16 spp on the cache, both also on the bins that show the cloud (the
+reference over 2 % from the bare sky), the relight (a new light list on the graph already made)
+against the first precompute, and a re-mix (new intensities of the same lights: set_lights and a
+field frame). Rows are printed and written as they finish (bench/results/lights-<date>.json and
+.md).
+
+    .venv/bin/python -m bench.lights --scenes sphere noise holdout --ref-spp 4096
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from cloudgraph.cache import CacheStore
+from cloudgraph.lights import Lights
+from cloudgraph.metrics import bias_metrics, binned
+from cloudgraph.precompute import precompute
+from cloudgraph.render import GraphRenderer
+from cloudgraph.scene import parse_scene
+
+from .harness import LIGHT, RELIGHT, _scene, bench_scenes, cameras, reference
+from .report import machine, row_md, table
+
+SKY = [0.25, 0.35, 0.55]
+SETUPS = {
+    "sun+sky": [
+        {"type": "directional", "direction": LIGHT.tolist(), "irradiance": 1.0},
+        {"type": "sky", "radiance": SKY},
+    ],
+    "two suns": [
+        {"type": "directional", "direction": LIGHT.tolist(), "irradiance": 1.0},
+        {"type": "directional", "direction": RELIGHT.tolist(), "irradiance": [0.6, 0.5, 0.4]},
+    ],
+}
+COLUMNS = [
+    "scene",
+    "lights",
+    "camera",
+    "albedo",
+    "gather_mean",
+    "gather_binned_pct",
+    "gather_cloud_pct",
+    "field_mean",
+    "field_binned_pct",
+    "field_cloud_pct",
+    "field_vs_gather_pct",
+    "ref_spp",
+    "pre_s",
+    "relight_s",
+    "remix_ms",
+    "field_MB",
+]
+
+
+def with_lights(scene, lights):
+    d = scene.model_dump(mode="json")
+    d.pop("light", None)
+    return parse_scene({**d, "lights": lights})
+
+
+def cloud_bins(ref: np.ndarray, sky: np.ndarray) -> np.ndarray:
+    """4x4 bins where the reference is more than 2 % from the bare sky (the cloud shows)."""
+    b = binned(ref, 4).mean(axis=-1)
+    s = float(np.mean(sky))
+    return np.abs(b - s) > 0.02 * max(s, 1e-6) if s > 0 else b > 0
+
+
+def cloud_pct(image, ref, mask) -> float:
+    a, b = binned(image, 4).mean(axis=-1)[mask], binned(ref, 4).mean(axis=-1)[mask]
+    return float(100 * np.abs(a - b).mean() / max(b.mean(), 1e-12))
+
+
+def run(scenes, albedos, setups, ref_spp: int, gather_spp: int, size: int, quality: str, out_dir: Path):
+    store = CacheStore(out_dir.parent / "cache-lights")
+    ref_dir = out_dir.parent / "reference-cache"
+    stem = out_dir / f"lights-{time.strftime('%Y%m%d-%H%M%S')}"
+    rows = []
+    for bs in bench_scenes(scenes):
+        for albedo in albedos:
+            base = _scene(bs, cameras(bs.volume, LIGHT, size)["side"], albedo, 16, seed=0)
+            t0 = time.perf_counter()
+            precompute(base, bs.volume, quality, store)  # the sun alone: the graph, first made
+            pre = time.perf_counter() - t0
+            for setup in setups:
+                lit = with_lights(base, SETUPS[setup])
+                t0 = time.perf_counter()
+                cache = precompute(lit, bs.volume, quality, store)  # a relight: the graph reused
+                relight = time.perf_counter() - t0
+                for cam_name, camera in cameras(bs.volume, LIGHT, size).items():
+                    scene = with_lights(_scene(bs, camera, albedo, gather_spp, seed=0), SETUPS[setup])
+                    ref = reference(bs, scene, ref_spp, ref_dir)
+                    lights = Lights.of(scene)
+                    mask = cloud_bins(ref, lights.sky_radiance)
+                    r = GraphRenderer(cache, bs.volume, scene)
+                    gather = r.render(scene.camera, gather_spp, 1, "gather")
+                    field = r.render(scene.camera, 16, 1, "field")
+                    row = {"scene": bs.name, "lights": setup, "camera": cam_name, "albedo": albedo}
+                    for name, image in (("gather", gather), ("field", field)):
+                        m = bias_metrics(image, ref)
+                        row[f"{name}_mean"] = m["mean_ratio"]
+                        row[f"{name}_binned_pct"] = 100 * m["binned_relMAE"]
+                        row[f"{name}_cloud_pct"] = cloud_pct(image, ref, mask)
+                    row["field_vs_gather_pct"] = 100 * bias_metrics(field, gather)["binned_relMAE"]
+                    # a re-mix: other intensities of the same lights, one 16-spp field frame
+                    dimmer = Lights(lights.directions, lights.sky, 0.5 * lights.intensity, True)
+                    r.render(scene.camera, 16, 1, "field", dimmer)  # (kernels warm)
+                    t0 = time.perf_counter()
+                    r.render(scene.camera, 16, 1, "field", lights)
+                    row["remix_ms"] = round(1000 * (time.perf_counter() - t0), 1)
+                    row.update(
+                        ref_spp=ref_spp,
+                        pre_s=round(pre, 2),
+                        relight_s=round(relight, 2),
+                        field_MB=round(cache.stats["field_bytes"] / 2**20, 2),
+                    )
+                    rows.append(row)
+                    print(row_md(row, COLUMNS), flush=True)
+                    _write(stem, rows, ref_spp, gather_spp, size, quality)
+    return rows
+
+
+def _write(stem: Path, rows, ref_spp, gather_spp, size, quality) -> None:
+    m = machine()
+    result = {"machine": m, "quality": quality, "size": size, "gather_spp": gather_spp, "ref_spp": ref_spp}
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    stem.with_suffix(".json").write_text(json.dumps({**result, "rows": rows}, indent=2))
+    text = (
+        f"# Several lights (bench/lights.py)\n\nMachine: {m['cpu']}, {m['cores']} cores; variant "
+        f"{m['variant']}; quality {quality}; {size}x{size}; gather {gather_spp} spp, field 16 spp; reference "
+        f"volpath with Mitsuba's directional and constant emitters, {ref_spp} spp, RR off. *_mean: image "
+        f"mean / reference's; *_binned_pct: 4x4-binned relMAE (%) over the image, *_cloud_pct over the bins "
+        f"where the cloud shows (reference over 2 % from the bare sky); pre_s: the first precompute (graph "
+        f"and the sun alone); relight_s: the setup's precompute on that graph; remix_ms: new intensities "
+        f"and a 16-spp field frame.\n\n" + table(rows, COLUMNS)
+    )
+    stem.with_suffix(".md").write_text(text)
+
+
+def main(argv=None) -> None:
+    from cloudgraph.mitsuba_scene import set_variant
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--scenes", nargs="*", default=["sphere", "noise", "holdout"])
+    p.add_argument("--albedo", nargs="*", type=float, default=[1.0, 0.8])
+    p.add_argument("--setups", nargs="*", default=list(SETUPS), choices=list(SETUPS))
+    p.add_argument("--ref-spp", type=int, default=4096)
+    p.add_argument("--gather-spp", type=int, default=1024)
+    p.add_argument("--size", type=int, default=64)
+    p.add_argument("--quality", default="default")
+    p.add_argument("--out", default="bench/results")
+    a = p.parse_args(argv)
+    set_variant()
+    run(a.scenes, a.albedo, a.setups, a.ref_spp, a.gather_spp, a.size, a.quality, Path(a.out))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,215 @@
+"""Several lights and a uniform sky (scene spec v1.1 ``lights``; docs/method.md, "Several
+lights"): the spec and its errors, the keys, a sky on a thin homogeneous sphere against its
+closed-form single scattering, two suns against the sum of each alone, a re-mix of intensities
+with no solve and no new kernel, and sun + sky against volpath.
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+from cloudgraph.cache import CacheStore, cache_keys
+from cloudgraph.errors import SceneError
+from cloudgraph.metrics import bias_metrics, binned
+from cloudgraph.params import build_params
+from cloudgraph.precompute import precompute
+from cloudgraph.procedural import sphere_volume
+from cloudgraph.scene import json_schema, parse_scene
+
+from ..helpers import framed_camera, kernels_compiled_by_the_second, pixel_rays, reference
+
+BASE = {"volume": {"path": "cloud.vdb"}, "camera": {"eye": [0, 0, 5], "target": [0, 0, 0]}}
+SUN = {"type": "directional", "direction": [-0.6, -0.7, -0.3], "irradiance": [1.0, 0.9, 0.8]}
+SUN2 = {"type": "directional", "direction": [0.5, -0.3, -0.8], "irradiance": 0.7}
+SKY = {"type": "sky", "radiance": [0.2, 0.3, 0.5]}
+
+
+def lit(volume, lights, density_scale, albedo=0.9, size=32, max_depth=-1, spp=64):
+    return parse_scene(
+        {
+            "volume": {"path": "unused.vdb"},
+            "medium": {"density_scale": density_scale, "albedo": albedo},
+            "lights": lights,
+            "camera": framed_camera(volume, size=size),
+            "render": {"spp": spp, "max_depth": max_depth},
+        }
+    )
+
+
+def renderer(cache, volume, scene):
+    from cloudgraph.render import GraphRenderer
+
+    return GraphRenderer(cache, volume, scene)
+
+
+# ------------------------------------------------------------------ the spec
+
+
+@pytest.mark.parametrize(
+    "extra, words",
+    [
+        ({"light": SUN, "lights": [SUN]}, "not both"),
+        ({"lights": []}, "lights must be a list of 1 to 8 lights, got 0 of them"),
+        ({"lights": [SUN] * 9}, "1 to 8 lights, got 9"),
+        ({"lights": [{"type": "sky", "radiance": -1}]}, "lights.0.radiance: must be a non-negative number"),
+        ({"lights": [SKY, {"type": "sky", "radiance": [1, 2]}]}, "lights.1.radiance: must be"),
+        ({"lights": [SUN, {"type": "moon"}]}, "lights.1.type must be one of directional, sky, got 'moon'"),
+        ({"lights": [{"type": "directional", "direction": [0, 0, 0]}]}, "lights.0.direction: direction must be a non-zero"),
+        ({"lights": [{"type": "sky", "direction": [0, -1, 0]}]}, "lights.0.direction: Extra inputs"),
+    ],
+)
+def test_bad_lights_are_refused_with_the_field_named(extra, words):
+    with pytest.raises(SceneError) as err:
+        parse_scene({**BASE, **extra})
+    assert words in str(err.value)
+
+
+def test_a_v1_scene_dumps_as_before_and_a_v11_one_without_the_unused_light():
+    v1 = parse_scene({**BASE, "light": SUN})
+    assert "lights" not in v1.model_dump() and v1.light_list() == (v1.light,)
+    v11 = parse_scene({**BASE, "lights": [SUN, SKY]})
+    dumped = v11.model_dump(mode="json")
+    assert "light" not in dumped and [li["type"] for li in dumped["lights"]] == ["directional", "sky"]
+    assert parse_scene(dumped) == v11
+    schema = json.dumps(json_schema())
+    assert '"sky"' in schema and "lights" in schema
+
+
+def test_the_radiance_key_holds_the_lights_kinds_and_directions_not_their_intensities():
+    volume = sphere_volume(8)
+    params = build_params(volume, 1.0, "draft")
+
+    def key(lights):
+        return cache_keys(parse_scene({**BASE, "lights": lights}), volume, params)["radiance_key"]
+
+    brighter = [{**SUN, "irradiance": 3.0}, {**SKY, "radiance": 0.1}]
+    assert key([SUN, SKY]) == key(brighter)  # a re-mix: the same cache
+    assert key([SUN, SKY]) != key([SUN])  # a sky more
+    assert key([SUN]) != key([{**SUN, "direction": [0, -1, 0]}])
+    assert key([SUN, SUN2]) != key([SUN2, SUN])  # components in the list's order
+    # the v1 light keeps its key (its radiance has the irradiance in it)
+    v1 = cache_keys(parse_scene({**BASE, "light": SUN}), volume, params)["radiance_key"]
+    assert v1 != key([SUN]) and v1 != cache_keys(
+        parse_scene({**BASE, "light": {**SUN, "irradiance": 2.0}}), volume, params
+    )["radiance_key"]
+
+
+# ------------------------------------------------------------------ a sky, closed form
+
+
+def sky_single_scattering(camera, radius, sigma, albedo, sky, n=48) -> np.ndarray:
+    """(H, W) single scattering plus background of a homogeneous ball (radius, sigma_t) under a
+    uniform sky, written out here with Gauss-Legendre quadrature: along a camera chord,
+    L = sky T(chord) + albedo sigma int T(t) S(|x(t)|) dt, where S(r) = sky / 2 int_-1^1
+    exp(-sigma l(r, mu)) dmu and l(r, mu) = -r mu + sqrt(r^2 mu^2 - r^2 + R^2) is the distance
+    from radius r to the surface at cosine mu."""
+    dirs = pixel_rays(camera.eye, camera.target, camera.up, camera.fov, camera.width, camera.height)
+    eye = np.asarray(camera.eye, float)
+    x, w = np.polynomial.legendre.leggauss(n)
+    b = dirs @ eye  # |eye + t d|^2 = t^2 + 2 b t + |eye|^2
+    disc = b * b - (eye @ eye - radius * radius)
+    hit = disc > 0
+    root = np.sqrt(np.where(hit, disc, 0.0))
+    t0, t1 = -b - root, -b + root
+    ts = 0.5 * (t1 - t0)[..., None] * (x + 1.0) + t0[..., None]  # (H, W, n) along the chord
+    r = np.linalg.norm(eye + ts[..., None] * dirs[..., None, :], axis=-1)
+    mu = x  # the inner quadrature's nodes, over [-1, 1]
+    ell = -r[..., None] * mu + np.sqrt(np.maximum(r[..., None] ** 2 * (mu**2 - 1) + radius**2, 0.0))
+    S = 0.5 * (np.exp(-sigma * ell) * w).sum(axis=-1)
+    inscatter = 0.5 * (t1 - t0) * (np.exp(-sigma * (ts - t0[..., None])) * S * w).sum(axis=-1)
+    L = np.exp(-sigma * (t1 - t0)) + albedo * sigma * inscatter
+    return sky * np.where(hit, L, 1.0)
+
+
+def test_a_uniform_sky_on_a_thin_ball_is_its_closed_form_single_scattering(variant, tmp_path):
+    n, tau_radius, albedo = 40, 0.4, 0.5
+    volume = sphere_volume(n)
+    radius = n / 2.0 - 1.0  # sphere_volume's (volpath reads the same: 0.1 % in the middle)
+    sigma = tau_radius / radius
+    scene = lit(volume, [{"type": "sky", "radiance": 1.0}], sigma, albedo, size=24, max_depth=1)
+    cache = precompute(scene, volume, "draft", CacheStore(tmp_path))
+    expected = sky_single_scattering(scene.camera, radius, sigma, albedo, 1.0)
+    # pixels whose chords stay off the voxelised surface (its staircase moves T by 2-3 % at 0.8 R);
+    # the background outside the ball
+    dirs = pixel_rays(scene.camera.eye, scene.camera.target, scene.camera.up, scene.camera.fov, 24, 24)
+    eye = np.asarray(scene.camera.eye)
+    miss = np.linalg.norm(eye - (dirs @ eye)[..., None] * dirs, axis=-1)  # the chord's distance to the centre
+    inner, outside = miss < 0.6 * radius, miss > radius + 3.0  # (pixels are 1.9 voxels wide)
+    r = renderer(cache, volume, scene)
+    field = r.render(scene.camera, 4, 0, "field").mean(axis=2)
+    gather = r.render(scene.camera, 1024, 1, "gather").mean(axis=2)
+    # without the sky's in-scattering the ball's centre would read 1 - T: 17 % below
+    assert expected[inner].min() < 0.9 and np.abs(field[inner] / expected[inner] - 1).max() < 0.01
+    np.testing.assert_allclose(field[outside], 1.0, rtol=1e-5)  # the sky behind the ball
+    np.testing.assert_allclose(gather[outside], 1.0, rtol=1e-5)
+    keep = binned(inner[..., None].astype(float), 4)[..., 0] == 1.0
+    g, e = binned(gather[..., None], 4)[..., 0], binned(expected[..., None], 4)[..., 0]
+    assert np.abs(g[keep] / e[keep] - 1).max() < 0.01
+
+
+# ------------------------------------------------------------------ several suns, a re-mix
+
+
+@pytest.fixture(scope="module")
+def two_suns(variant, tmp_path_factory):
+    volume = sphere_volume(24, soft=0.2)
+    store = CacheStore(tmp_path_factory.mktemp("suns"))
+    scenes = {
+        name: lit(volume, lights, 1.0, size=24)
+        for name, lights in (("both", [SUN, SUN2]), ("sun", [SUN]), ("sun2", [SUN2]))
+    }
+    caches = {name: precompute(s, volume, "draft", store) for name, s in scenes.items()}
+    return volume, scenes, caches
+
+
+def test_two_suns_are_the_sum_of_each_alone(two_suns):
+    volume, scenes, caches = two_suns
+    field = {n: renderer(caches[n], volume, s).render(s.camera, 4, 0, "field") for n, s in scenes.items()}
+    total = field["sun"] + field["sun2"]
+    m = bias_metrics(field["both"], total)
+    # each component lit with its own random numbers: sampling noise of the lighting only
+    assert m["binned_relMAE"] < 0.01 and abs(m["mean_ratio"] - 1) < 0.005, m
+    assert field["sun"].mean() > 0.2 * total.mean() and field["sun2"].mean() > 0.2 * total.mean()
+
+
+@pytest.mark.parametrize("estimator", ["gather", "field"])
+def test_new_intensities_re_mix_the_cache_with_no_new_kernel(two_suns, estimator):
+    from cloudgraph.lights import Lights
+
+    volume, scenes, caches = two_suns
+    scene = scenes["both"]
+    r = renderer(caches["both"], volume, scene)
+
+    def with_intensities(e1, e2):
+        lights = [{**SUN, "irradiance": e1}, {**SUN2, "irradiance": e2}]
+        return Lights.of(lit(volume, lights, 1.0, size=24))
+
+    one, two = with_intensities(1.0, 0.0), with_intensities(0.0, 1.0)
+    a = r.render(scene.camera, 16, 0, estimator, one)
+    (b, mixed), new = kernels_compiled_by_the_second(
+        lambda: r.render(scene.camera, 16, 0, estimator, two),
+        lambda: r.render(scene.camera, 16, 0, estimator, with_intensities([2.0, 1.0, 0.5], 3.0)),
+    )
+    assert not new, f"kernels compiled for a new mix: {new}"
+    # the same random numbers in every render: linear in the intensities to rounding
+    expected = a * np.array([2.0, 1.0, 0.5], np.float32) + 3.0 * b
+    np.testing.assert_allclose(mixed, expected, rtol=1e-4, atol=1e-6 * expected.max())
+    with pytest.raises(SceneError, match="not the cache's"):
+        r.render(scene.camera, 4, 0, estimator, Lights.of(scenes["sun"]))
+
+
+# ------------------------------------------------------------------ against volpath
+
+
+def test_sun_and_sky_against_volpath(variant, tmp_path):
+    volume = sphere_volume(32, soft=0.2)
+    scene = lit(volume, [SUN, SKY], 1.0, albedo=0.9)
+    cache = precompute(scene, volume, "default", CacheStore(tmp_path))
+    ref = reference(scene, volume, spp=1024)
+    r = renderer(cache, volume, scene)
+    gather = bias_metrics(r.render(scene.camera, 512, 1, "gather"), ref)
+    field = bias_metrics(r.render(scene.camera, 4, 0, "field"), ref)
+    # measured: gather 0.4 % / 0.998, field 0.8 % / 0.995; the sky alone would read 0.8 of it
+    assert gather["binned_relMAE"] < 0.02 and abs(gather["mean_ratio"] - 1) < 0.01, gather
+    assert field["binned_relMAE"] < 0.02 and abs(field["mean_ratio"] - 1) < 0.015, field
