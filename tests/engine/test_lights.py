@@ -55,7 +55,7 @@ def renderer(cache, volume, scene):
         ({"lights": [{"type": "sky", "radiance": -1}]}, "lights.0.radiance: must be a non-negative number"),
         ({"lights": [SKY, {"type": "sky", "radiance": [1, 2]}]}, "lights.1.radiance: must be"),
         ({"lights": [SUN, {"type": "moon"}]}, "lights.1.type must be one of directional, sky, got 'moon'"),
-        ({"lights": [{"type": "directional", "direction": [0, 0, 0]}]}, "lights.0.direction: direction must be a non-zero"),
+        ({"lights": [{"type": "directional", "direction": [0, 0, 0]}]}, "lights.0.direction: direction must"),
         ({"lights": [{"type": "sky", "direction": [0, -1, 0]}]}, "lights.0.direction: Extra inputs"),
     ],
 )
@@ -90,9 +90,13 @@ def test_the_radiance_key_holds_the_lights_kinds_and_directions_not_their_intens
     assert key([SUN, SUN2]) != key([SUN2, SUN])  # components in the list's order
     # the v1 light keeps its key (its radiance has the irradiance in it)
     v1 = cache_keys(parse_scene({**BASE, "light": SUN}), volume, params)["radiance_key"]
-    assert v1 != key([SUN]) and v1 != cache_keys(
-        parse_scene({**BASE, "light": {**SUN, "irradiance": 2.0}}), volume, params
-    )["radiance_key"]
+    assert (
+        v1 != key([SUN])
+        and v1
+        != cache_keys(parse_scene({**BASE, "light": {**SUN, "irradiance": 2.0}}), volume, params)[
+            "radiance_key"
+        ]
+    )
 
 
 # ------------------------------------------------------------------ a sky, closed form

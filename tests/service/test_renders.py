@@ -119,3 +119,49 @@ def test_unknown_renders_are_404(client):
     for path in ("/v1/renders/render-nope/image", "/v1/renders/a.b/image", "/v1/renders/%C3%A9/image"):
         r = client.get(path)
         assert r.status_code == 404 and "no render job" in detail(r), (path, r.text)
+
+
+def test_a_scene_of_lights_renders_and_new_intensities_are_the_same_cache(client, fog):
+    # scene spec v1.1: a sun and a uniform sky; the sky is seen behind the fog ball
+    scene = fog_scene(fog, width=24, spp=1)
+    scene.pop("light")
+    scene["lights"] = [{"type": "directional", "direction": [1, -1, 0]}, {"type": "sky", "radiance": 0.5}]
+    body = {k: scene[k] for k in ("volume", "medium", "lights")} | {"quality": "draft"}
+    r = client.post("/v1/caches", json=body)
+    assert r.status_code in (200, 202), r.text
+    assert wait_job(client, f"cache-{r.json()['id']}")["status"] == "finished"
+    sun = body["lights"][0]
+    brighter = {**body, "lights": [{**sun, "irradiance": 3.0}, {"type": "sky", "radiance": 1.0}]}
+    again = client.post("/v1/caches", json=brighter)
+    assert again.status_code == 200 and again.json()["id"] == r.json()["id"]  # a re-mix: the same cache
+
+    def mean(lights) -> float:
+        req = {"scene": {**scene, "lights": lights}, "quality": "draft", "estimator": "field"}
+        img = client.post("/v1/renders", json=req)
+        assert img.status_code == 200, img.text
+        return client.get(f"/v1/jobs/{img.headers['x-job-id']}").json()["result"]["mean"]
+
+    # the field is linear in the intensities: the sky alone doubled doubles its image
+    dark_sun = {**scene["lights"][0], "irradiance": 0.0}
+    sky = mean([dark_sun, {"type": "sky", "radiance": 0.5}])
+    assert sky > 0 and abs(mean([dark_sun, {"type": "sky", "radiance": 1.0}]) / sky - 2) < 1e-3
+    assert mean(scene["lights"]) > sky  # and the sun adds to it
+
+
+@pytest.mark.parametrize(
+    "lights, words",
+    [
+        ([{"type": "sky", "radiance": -1}], "lights.0.radiance: must be a non-negative number"),
+        ([{"type": "sun"}], "lights.0.type must be one of directional, sky, got 'sun'"),
+        ([{"type": "sky", "radiance": 2e6}], "scene.lights.0.radiance: must be at most"),
+        ([{"type": "directional", "direction": [0, 2e6, 0]}], "scene.lights.0.direction"),
+    ],
+)
+def test_bad_lights_get_a_422_naming_the_light(client, fog, lights, words):
+    scene = fog_scene(fog)
+    scene.pop("light")
+    r = client.post("/v1/renders", json={"scene": {**scene, "lights": lights}, "quality": "draft"})
+    assert r.status_code == 422, r.text
+    assert words in detail(r)
+    both = client.post("/v1/renders", json={"scene": {**fog_scene(fog), "lights": lights}})
+    assert both.status_code == 422
