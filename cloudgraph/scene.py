@@ -222,9 +222,10 @@ class SkySpec(_Model):
     def _intensity(cls, v):
         # one message, not one per member of the scalar | RGB union
         values = v if isinstance(v, list | tuple) else [v]
-        ok = len(values) in (1, 3) and all(
-            not isinstance(c, bool) and isinstance(c, int | float) and math.isfinite(c) and c >= 0 for c in values
-        )
+        def number(c) -> bool:
+            return not isinstance(c, bool) and isinstance(c, int | float) and math.isfinite(c) and c >= 0
+
+        ok = len(values) in (1, 3) and all(number(c) for c in values)
         if not ok or (isinstance(v, list | tuple) and len(v) != 3):
             raise ValueError(f"must be a non-negative number or three of them (RGB), got {v!r}")
         return v

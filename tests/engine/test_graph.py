@@ -266,9 +266,8 @@ def test_changing_albedo_reuses_the_graph_and_recomputes_only_the_radiance(varia
     from cloudgraph.stages import local_chunks
 
     scene, params = medium_scene(volume, 0.5, albedo=0.6), build_params(volume, 0.5, "draft")
-    lit = local_chunks(
-        GraphBuilder(volume, 0.5, params), "lighting", lighting_inputs(dark.graph.positions, Lights.of(scene), params)
-    )
+    inputs = lighting_inputs(dark.graph.positions, Lights.of(scene), params)
+    lit = local_chunks(GraphBuilder(volume, 0.5, params), "lighting", inputs)
     L_d = placed(lit, dark.graph.n_nodes, 3, np.float64)
     C = sp.csc_matrix(dark.graph.collision_matrix())
     eye = sp.identity(C.shape[0], format="csc")
