@@ -310,7 +310,7 @@ class Scene(_Model):
             raise ValueError(f"lights must be a list of 1 to {MAX_LIGHTS} lights, got {_brief(lights)}")
         for i, light in enumerate(lights):
             kind = light.get("type") if isinstance(light, dict) else None
-            if kind not in LIGHT_TYPES:
+            if not isinstance(kind, str) or kind not in LIGHT_TYPES:
                 raise ValueError(f"lights.{i}.type must be one of {', '.join(LIGHT_TYPES)}, got {kind!r}")
             try:
                 LIGHT_TYPES[kind].model_validate(light)

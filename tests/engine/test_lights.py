@@ -55,6 +55,8 @@ def renderer(cache, volume, scene):
         ({"lights": [{"type": "sky", "radiance": -1}]}, "lights.0.radiance: must be a non-negative number"),
         ({"lights": [SKY, {"type": "sky", "radiance": [1, 2]}]}, "lights.1.radiance: must be"),
         ({"lights": [SUN, {"type": "moon"}]}, "lights.1.type must be one of directional, sky, got 'moon'"),
+        ({"lights": [{"type": {}, "radiance": 1}]}, "lights.0.type must be one of directional, sky, got {}"),
+        ({"lights": ["sun"]}, "lights.0.type must be one of"),
         ({"lights": [{"type": "directional", "direction": [0, 0, 0]}]}, "lights.0.direction: direction must"),
         ({"lights": [{"type": "sky", "direction": [0, -1, 0]}]}, "lights.0.direction: Extra inputs"),
     ],
