@@ -56,8 +56,11 @@ export function decodeField(buffer) {
     throw new FieldError(`unsupported field format ${JSON.stringify(header.format)} version ${header.version}`);
   }
   const unitToWorld = vec((header.unit_to_world || []).flat(), 16, "unit_to_world");
+  const lights = header.lights ? lightComponents(header.lights) : null;
+  const specs = { ...ARRAYS };
+  if (lights && lights.sky) specs[lights.sky] = ARRAYS.radiance_ms;
   const arrays = {};
-  for (const [name, spec] of Object.entries(ARRAYS)) {
+  for (const [name, spec] of Object.entries(specs)) {
     const a = header.arrays && header.arrays[name];
     if (!a) throw new FieldError(`the field has no ${name} array`);
     if (a.dtype !== "float16") throw new FieldError(`${name}: dtype ${a.dtype} is not supported (float16 only)`);
@@ -85,19 +88,55 @@ export function decodeField(buffer) {
   const maxDtau = Number(header.max_dtau);
   const edge = Number(header.edge);
   if (!(maxDtau > 0) || !(edge >= 0)) throw new FieldError("the field's header has no valid max_dtau or edge");
-  const light = header.light || {};
+  if (lights && lights.sky && arrays[lights.sky].shape.join() !== arrays.radiance_ms.shape.join()) {
+    throw new FieldError("the sky's radiance differs in shape from radiance_ms");
+  }
+  // A v1.1 field holds its lights at unit intensity (the page mixes them, setMix); a v1 one
+  // its light at its irradiance
+  const light = lights ? { direction: lights.direction, irradiance: [1, 1, 1] } : header.light || {};
   return {
     header,
     unitToWorld,
     worldToUnit: invertAffine(unitToWorld),
     worldBbox: header.world_bbox,
     light: { direction: vec(light.direction, 3, "light.direction"), irradiance: vec(light.irradiance, 3, "light.irradiance") },
+    // v1.1: { sun: whether the first component is a directional light, sky: its radiance
+    // array's name or null }; null for a v1 field
+    lights,
     albedo: vec(header.albedo, 3, "albedo"),
     step,
     maxDtau,
     edge,
     arrays,
     bytes: buffer.byteLength,
+  };
+}
+
+/**
+ * The light components of a v1.1 field's header (api.md): at most one directional light (the
+ * first component, with tau_light and radiance_ms) and a sky. Throws FieldError otherwise.
+ */
+function lightComponents(list) {
+  if (!Array.isArray(list) || !list.length) throw new FieldError("the field's header has no valid lights");
+  const suns = list.filter((c) => c && c.type === "directional");
+  const skies = list.filter((c) => c && c.type === "sky");
+  if (suns.length + skies.length !== list.length) throw new FieldError("the field's header has a light of unknown type");
+  if (suns.length > 1) {
+    throw new FieldError(`the real-time view draws one directional light, and this cache has ${suns.length}: render it on the server`);
+  }
+  const sun = suns[0];
+  if (sun && (list[0] !== sun || sun.tau !== "tau_light" || sun.ms !== "radiance_ms")) {
+    throw new FieldError("the field's directional light is not its first component");
+  }
+  const sky = skies[0] || null;
+  if (sky && (typeof sky.ms !== "string" || (sun ? sky.ms === "radiance_ms" : sky.ms !== "radiance_ms"))) {
+    throw new FieldError("the field's sky has no radiance array of its own");
+  }
+  return {
+    sun: !!sun,
+    // without a sun the sky is the first component: its radiance is radiance_ms itself
+    sky: sky ? sky.ms : null,
+    direction: sun ? sun.direction : [0, -1, 0],
   };
 }
 

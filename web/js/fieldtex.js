@@ -32,16 +32,21 @@ function axisWeights(n, m) {
 
 /**
  * The moving camera's texture: per density voxel (sigma_t / scale, L_in r, g, b) with
- * L_in = E exp(-tau_light) / 4pi + radiance_ms (resampled to the density grid). Float32 RGBA.
+ * L_in = E exp(-tau_light) / 4pi + radiance_ms (resampled to the density grid), and a v1.1
+ * field's sky radiance array added. ``mix`` (glview.js): { direct: E / 4pi, radScale: the
+ * scale of radiance_ms in this light, sky: null or { data, scale } }. Float32 RGBA.
  */
-export function packedField(field) {
+export function packedField(field, mix) {
   const { sigma_t, tau_light, radiance_ms } = field.arrays;
   const [nz, ny, nx] = sigma_t.shape;
   const [mz, my, mx] = radiance_ms.shape;
-  const [ex, ey, ez] = field.light.irradiance.map((e) => e / (4 * Math.PI));
-  const [sr, sg, sb] = radiance_ms.scale;
+  const [ex, ey, ez] = mix.direct;
+  const [sr, sg, sb] = mix.radScale;
   const tauScale = Number(tau_light.scale);
   const rad = radiance_ms.data;
+  const sky = mix.sky ? mix.sky.data : null;
+  const [kr, kg, kb] = mix.sky ? mix.sky.scale : [0, 0, 0];
+  const q = [0, 0, 0]; // the sky's, resampled
   const X = axisWeights(nx, mx);
   const Y = axisWeights(ny, my);
   const Z = axisWeights(nz, mz);
@@ -62,17 +67,21 @@ export function packedField(field) {
         const wx = X.w[i];
         const a = X.i0[i];
         const b = X.i1[i];
-        for (let ch = 0; ch < 3; ch++) {
-          const at = (row, col) => HALF[rad[3 * (row + col) + ch]];
+        const resample = (src, ch) => {
+          const at = (row, col) => HALF[src[3 * (row + col) + ch]];
           const y0 = (1 - wz) * ((1 - wx) * at(r00, a) + wx * at(r00, b)) + wz * ((1 - wx) * at(r10, a) + wx * at(r10, b));
           const y1 = (1 - wz) * ((1 - wx) * at(r01, a) + wx * at(r01, b)) + wz * ((1 - wx) * at(r11, a) + wx * at(r11, b));
-          c[ch] = (1 - wy) * y0 + wy * y1;
+          return (1 - wy) * y0 + wy * y1;
+        };
+        for (let ch = 0; ch < 3; ch++) {
+          c[ch] = resample(rad, ch);
+          q[ch] = sky ? resample(sky, ch) : 0;
         }
         const direct = Math.exp(-tauScale * HALF[tau_light.data[v]]);
         out[4 * v] = HALF[sigma_t.data[v]];
-        out[4 * v + 1] = ex * direct + sr * c[0];
-        out[4 * v + 2] = ey * direct + sg * c[1];
-        out[4 * v + 3] = ez * direct + sb * c[2];
+        out[4 * v + 1] = ex * direct + sr * c[0] + kr * q[0];
+        out[4 * v + 2] = ey * direct + sg * c[1] + kg * q[1];
+        out[4 * v + 3] = ez * direct + sb * c[2] + kb * q[2];
       }
     }
   }

@@ -30,6 +30,40 @@ export function cameraBasis(cam) {
   return { forward, right, up };
 }
 
+/** A v1.1 field's sky radiance array beside a sun's radiance_ms, or null. */
+function skyArray(field) {
+  const l = field.lights;
+  return l && l.sun && l.sky ? field.arrays[l.sky] : null;
+}
+
+/**
+ * A field in a light: the shader's uniforms { direct (E / 4pi), radScale (radiance_ms's scale
+ * times its component's intensity), skyRadScale, background (the sky behind the medium) } and
+ * packedField's mix. A v1 field is in its own light; a v1.1 one (unit components) in ``mix``
+ * ({ sun, sky }: RGB intensities; none given: 1 and 0).
+ */
+function mixOf(field, mix) {
+  const scale = field.arrays.radiance_ms.scale;
+  const l = field.lights;
+  if (!l) {
+    const direct = field.light.irradiance.map((e) => e / (4 * Math.PI));
+    const uniforms = { direct, radScale: scale, skyRadScale: [0, 0, 0], background: [0, 0, 0] };
+    return { uniforms, packed: { direct, radScale: scale, sky: null } };
+  }
+  const sun = l.sun ? (mix && mix.sun) || [1, 1, 1] : [0, 0, 0];
+  const skyE = l.sky ? (mix && mix.sky) || [0, 0, 0] : [0, 0, 0];
+  const first = l.sun ? sun : skyE; // the first component's intensity (radiance_ms)
+  const sky = skyArray(field);
+  const uniforms = {
+    direct: sun.map((e) => e / (4 * Math.PI)),
+    radScale: scale.map((s, c) => s * first[c]),
+    skyRadScale: sky ? sky.scale.map((s, c) => s * skyE[c]) : [0, 0, 0],
+    background: skyE,
+  };
+  const packed = { direct: uniforms.direct, radScale: uniforms.radScale, sky: sky && { data: sky.data, scale: uniforms.skyRadScale } };
+  return { uniforms, packed };
+}
+
 export class GLView {
   /** canvas: the <canvas> to draw on. Throws if WebGL2 is missing. */
   constructor(canvas) {
@@ -49,6 +83,7 @@ export class GLView {
     this.vao = gl.createVertexArray();
     this.textures = null;
     this.field = null;
+    this.mix = null; // the lights' intensities for a v1.1 field (setMix)
     this.maxSize = gl.getParameter(gl.MAX_3D_TEXTURE_SIZE);
   }
 
@@ -93,7 +128,47 @@ export class GLView {
   static textureBytes(field) {
     const count = (a) => a.shape[0] * a.shape[1] * a.shape[2];
     const { sigma_t, radiance_ms, majorant } = field.arrays;
-    return Math.round((4 + (8 * 8) / 7) * count(sigma_t) + 8 * count(radiance_ms) + 2 * count(majorant));
+    const skies = skyArray(field) ? 2 : 1; // a v1.1 field's sky: a second radiance texture
+    return Math.round((4 + (8 * 8) / 7) * count(sigma_t) + 8 * skies * count(radiance_ms) + 2 * count(majorant));
+  }
+
+  /**
+   * The lights' intensities for a v1.1 field (held at unit intensity): { sun: [3] irradiance,
+   * sky: [3] radiance }. Re-draws need no request: uniforms, and the moving camera's texture
+   * made again. A v1 field keeps its own light.
+   */
+  setMix(mix) {
+    this.mix = mix;
+    if (!this.unitField || !this.textures) return;
+    const m = mixOf(this.unitField, mix);
+    Object.assign(this.field, m.uniforms);
+    const packed = this.makePacked(this.unitField.arrays.sigma_t, packedField(this.unitField, m.packed));
+    this.gl.deleteTexture(this.textures.packed);
+    this.textures.packed = packed;
+  }
+
+  /** The moving camera's RGBA16F (sigma_t, L_in) texture, with mipmaps where the device can. */
+  makePacked(arr, data) {
+    const gl = this.gl;
+    const [nz, ny, nx] = arr.shape;
+    const t = gl.createTexture();
+    gl.bindTexture(gl.TEXTURE_3D, t);
+    gl.pixelStorei(gl.UNPACK_ALIGNMENT, 4);
+    gl.texImage3D(gl.TEXTURE_3D, 0, gl.RGBA16F, nx, ny, nz, 0, gl.RGBA, gl.FLOAT, data);
+    // Mipmaps (where the device can render to half floats): long steps read a prefiltered
+    // field instead of skipping over thin features.
+    let mips = false;
+    if (gl.getExtension("EXT_color_buffer_float") || gl.getExtension("EXT_color_buffer_half_float")) {
+      gl.generateMipmap(gl.TEXTURE_3D);
+      mips = gl.getError() === gl.NO_ERROR;
+    }
+    // (nearest mip: SwiftShader samples LINEAR_MIPMAP_LINEAR at a third of the speed)
+    gl.texParameteri(gl.TEXTURE_3D, gl.TEXTURE_MIN_FILTER, mips ? gl.LINEAR_MIPMAP_NEAREST : gl.LINEAR);
+    gl.texParameteri(gl.TEXTURE_3D, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
+    for (const w of [gl.TEXTURE_WRAP_S, gl.TEXTURE_WRAP_T, gl.TEXTURE_WRAP_R]) {
+      gl.texParameteri(gl.TEXTURE_3D, w, gl.CLAMP_TO_EDGE);
+    }
+    return t;
   }
 
   /**
@@ -116,40 +191,24 @@ export class GLView {
       }
       return t;
     };
-    const make32 = (arr, data) => {
-      const [nz, ny, nx] = arr.shape;
-      const t = gl.createTexture();
-      gl.bindTexture(gl.TEXTURE_3D, t);
-      gl.pixelStorei(gl.UNPACK_ALIGNMENT, 4);
-      gl.texImage3D(gl.TEXTURE_3D, 0, gl.RGBA16F, nx, ny, nz, 0, gl.RGBA, gl.FLOAT, data);
-      // Mipmaps (where the device can render to half floats): long steps read a prefiltered
-      // field instead of skipping over thin features.
-      let mips = false;
-      if (gl.getExtension("EXT_color_buffer_float") || gl.getExtension("EXT_color_buffer_half_float")) {
-        gl.generateMipmap(gl.TEXTURE_3D);
-        mips = gl.getError() === gl.NO_ERROR;
-      }
-      // (nearest mip: SwiftShader samples LINEAR_MIPMAP_LINEAR at a third of the speed)
-      gl.texParameteri(gl.TEXTURE_3D, gl.TEXTURE_MIN_FILTER, mips ? gl.LINEAR_MIPMAP_NEAREST : gl.LINEAR);
-      gl.texParameteri(gl.TEXTURE_3D, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
-      for (const w of [gl.TEXTURE_WRAP_S, gl.TEXTURE_WRAP_T, gl.TEXTURE_WRAP_R]) {
-        gl.texParameteri(gl.TEXTURE_3D, w, gl.CLAMP_TO_EDGE);
-      }
-      return t;
-    };
+    const m = mixOf(field, this.mix);
+    const sky = skyArray(field);
     const textures = {
       densTau: make(sigma_t, gl.RG16F, gl.RG, interleaved(sigma_t.data, tau_light.data), gl.LINEAR),
       rad: make(radiance_ms, gl.RGB16F, gl.RGB, radiance_ms.data, gl.LINEAR),
+      sky: sky ? make(sky, gl.RGB16F, gl.RGB, sky.data, gl.LINEAR) : null,
       maj: make(majorant, gl.R16F, gl.RED, majorant.data, gl.NEAREST),
-      packed: make32(sigma_t, packedField(field)),
+      packed: this.makePacked(sigma_t, packedField(field, m.packed)),
     };
     const err = gl.getError();
     if (err !== gl.NO_ERROR && !gl.isContextLost()) {
-      Object.values(textures).forEach((t) => gl.deleteTexture(t));
+      Object.values(textures).forEach((t) => t && gl.deleteTexture(t));
       throw new Error(`the field could not be uploaded to the GPU (WebGL error 0x${err.toString(16)})`);
     }
-    if (this.textures) Object.values(this.textures).forEach((t) => gl.deleteTexture(t));
+    if (this.textures) Object.values(this.textures).forEach((t) => t && gl.deleteTexture(t));
     this.textures = textures;
+    // a v1.1 field's arrays stay for re-mixes (setMix); a v1 field's can be collected
+    this.unitField = field.lights ? field : null;
     const [nz, ny, nx] = sigma_t.shape;
     const [bz, by, bx] = majorant.shape;
     const B = majorant.block;
@@ -163,8 +222,7 @@ export class GLView {
       sigmaScale: Number(sigma_t.scale),
       tauScale: Number(tau_light.scale),
       majScale: Number(majorant.scale),
-      radScale: radiance_ms.scale,
-      direct: field.light.irradiance.map((e) => e / (4 * Math.PI)),
+      ...m.uniforms,
       albedo: field.albedo,
       blockCells: [nx / B, ny / B, nz / B],
       blocks: [bx, by, bz],
@@ -205,6 +263,9 @@ export class GLView {
     gl.uniform1f(L.uTauScale, f.tauScale);
     gl.uniform3fv(L.uRadScale, f.radScale);
     gl.uniform3fv(L.uDirect, f.direct);
+    if (L.uSkyRadScale) gl.uniform3fv(L.uSkyRadScale, f.skyRadScale);
+    if (L.uHasSky) gl.uniform1i(L.uHasSky, this.textures.sky ? 1 : 0);
+    if (L.uSky) gl.uniform3fv(L.uSky, f.background);
     if (L.uAnisotropic) gl.uniform1i(L.uAnisotropic, f.phase ? 1 : 0);
     if (L.uPhase) gl.uniform3fv(L.uPhase, f.phase || [0, 0, 1]);
     if (L.uToLight) gl.uniform3fv(L.uToLight, f.toLight);
@@ -224,6 +285,7 @@ export class GLView {
       ["uDensTau", fast ? this.textures.packed : this.textures.densTau],
       ["uRad", this.textures.rad],
       ["uMaj", this.textures.maj],
+      ["uRadSky", this.textures.sky || this.textures.rad],
     ];
     units.forEach(([name, tex], i) => {
       if (!L[name]) return; // optimised away

@@ -31,7 +31,7 @@ function buildRequest(cameraSpec, spp, integrator, seed = 0) {
     scene: {
       volume: v.volume,
       medium: v.medium,
-      light: v.light,
+      ...v.lightPart,
       camera: cameraSpec,
       render: { spp, max_depth: -1, seed },
     },
@@ -101,7 +101,7 @@ const cache = new CachePanel({
     const v = scene.values();
     return {
       key: scene.key(),
-      body: { volume: v.volume, medium: v.medium, light: v.light, max_depth: -1, quality: v.quality },
+      body: { volume: v.volume, medium: v.medium, ...v.lightPart, max_depth: -1, quality: v.quality },
     };
   },
   onReady: () => sceneChanged(),
@@ -265,6 +265,7 @@ function sceneChanged() {
 /** The real-time viewport's share of sceneChanged(). */
 function realtimeSceneChanged(key) {
   viewer.setEnabled(false, "");
+  realtime.setMix(scene.mix()); // a v1.1 field's lights re-mixed at once, with no request
   if (cache.isReadyFor(key)) {
     if (realtime.fieldKey === key) {
       showOverlay("");

@@ -64,6 +64,13 @@ export class RealtimeView {
     return this.fieldKey != null;
   }
 
+  /** The lights' intensities ({ sun, sky }) that a v1.1 field is drawn in; re-draws. */
+  setMix(mix) {
+    if (mix && JSON.stringify(mix) === JSON.stringify(this.gl.mix)) return;
+    this.gl.setMix(mix);
+    if (this.hasField()) this.redraw();
+  }
+
   /** Shows or hides the real-time view (the server viewer takes over when hidden). */
   setActive(active) {
     this.active = active;

@@ -36,6 +36,13 @@ export function readPhase({ type, g, g2, weight }) {
   return null;
 }
 
+/** A sky's RGB radiance: ``scale`` times an <input type=color> value's linear colour. */
+export function skyRadiance(hex, scale) {
+  const c = [1, 3, 5].map((i) => parseInt(hex.slice(i, i + 2), 16) / 255);
+  const linear = c.map((v) => (v <= 0.04045 ? v / 12.92 : ((v + 0.055) / 1.055) ** 2.4));
+  return linear.map((v) => Number((scale * v).toPrecision(4)));
+}
+
 function describeVolume(info) {
   const [lo, hi] = info.index_bbox || [[0, 0, 0], [0, 0, 0]];
   const dims = hi.map((v, i) => v - lo[i] + 1).join("×");
@@ -57,6 +64,8 @@ export class ScenePanel {
     this.az = $("#light-az");
     this.el = $("#light-el");
     this.irradiance = $("#irradiance");
+    this.sky = $("#sky");
+    this.skyColour = $("#sky-colour");
     this.quality = $("#quality");
     this.upAxis = $("#up-axis");
 
@@ -84,9 +93,11 @@ export class ScenePanel {
       this.density.value = defaultDensityScale(info);
       this.onChange();
     });
-    for (const input of [this.density, this.albedo, this.irradiance, this.quality]) {
+    for (const input of [this.density, this.albedo, this.irradiance, this.quality, this.sky]) {
       input.addEventListener("change", () => this.onChange());
     }
+    // the sky's colour re-mixes the view as it is picked (no request when the cache has a sky)
+    this.skyColour.addEventListener("input", () => this.onChange());
     this.showPhase();
     this.phase.type.addEventListener("change", () => {
       this.showPhase();
@@ -191,23 +202,38 @@ export class ScenePanel {
     };
     const phase = readPhase(this.phase);
     if (phase) medium.phase = phase;
-    return {
-      volume: { id: info.id },
-      medium,
-      light: {
-        type: "directional",
-        direction: lightDirection(az, el, this.axes()),
-        irradiance: readNumber(this.irradiance, { min: 0 }),
-      },
-      quality: this.quality.value,
+    const sun = {
+      type: "directional",
+      direction: lightDirection(az, el, this.axes()),
+      irradiance: readNumber(this.irradiance, { min: 0 }),
     };
+    const sky = readNumber(this.sky, { min: 0 });
+    // Without a sky, a v1 scene's one light; with one, v1.1's lights (the cache holds them
+    // apart, so their intensities are not part of it: key())
+    const lightPart =
+      sky > 0 ? { lights: [sun, { type: "sky", radiance: skyRadiance(this.skyColour.value, sky) }] } : { light: sun };
+    return { volume: { id: info.id }, medium, ...lightPart, lightPart, quality: this.quality.value };
   }
 
-  /** What a radiance cache depends on, as a string (null when the inputs are invalid). */
+  /** The lights' intensities, for the real-time view's mix: { sun: [3], sky: [3] }. */
+  mix() {
+    try {
+      const v = this.values();
+      const [sun, sky] = v.lights || [v.light];
+      const e = sun.irradiance;
+      return { sun: [e, e, e], sky: sky ? sky.radiance : [0, 0, 0] };
+    } catch {
+      return null;
+    }
+  }
+
+  /** What a radiance cache depends on, as a string (null when the inputs are invalid): for
+   * v1.1 lights their kinds and directions only (new intensities are the same cache). */
   key() {
     try {
       const v = this.values();
-      return JSON.stringify([v.volume, v.medium, v.light, v.quality]);
+      const light = v.lights ? v.lights.map((l) => ({ type: l.type, direction: l.direction })) : v.light;
+      return JSON.stringify([v.volume, v.medium, light, v.quality]);
     } catch {
       return null;
     }

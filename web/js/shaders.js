@@ -12,6 +12,8 @@
 //                     + M0 (1 - e^-dtau) + (M1 - M0) (1 - e^-dtau (1 + dtau)) / dtau];  Tr *= e^-dtau
 //   segments of at most uMaxDtau at the block's majorant, and uStep; the first (1 - u) of one
 //   long, with one jitter u per pixel; stop when Tr < 1e-3
+// A v1.1 field's sky: its radiance array (in-scattered sky light, single scattering included)
+// added to L_ms, and the sky seen behind the medium, L += Tr uSky at the ray's end.
 // then display: clamp(L 2^exposure, 0, 1) through the sRGB transfer.
 
 export const VERTEX = `#version 300 es
@@ -41,6 +43,10 @@ uniform sampler3D uDensTau;   // R: sigma_t / sigmaScale, G: tau_light (field gr
                               // PACKED: R as above, GBA: L_in
 uniform sampler3D uRad;       // RGB: radiance after the first scattering / radScale (linear)
 uniform sampler3D uMaj;       // R: majorant / uMajScale per block (nearest, texelFetch)
+uniform sampler3D uRadSky;    // RGB: a v1.1 field's sky radiance / its scale (linear)
+uniform bool uHasSky;         // whether uRadSky holds a sky beside a sun's radiance
+uniform vec3 uSkyRadScale;    // the sky's radiance = texel * uSkyRadScale (its intensity in)
+uniform vec3 uSky;            // the sky's radiance seen behind the medium (0 without a sky)
 
 uniform vec3 uEye;            // camera, world units
 uniform vec3 uForward;
@@ -119,6 +125,7 @@ Sample sampleAt(vec3 p) {
   vec2 st = texture(uDensTau, p).rg;
   s.sigma = st.r * uSigmaScale;
   s.ms = texture(uRad, p).rgb * uRadScale;
+  if (uHasSky) s.ms += texture(uRadSky, p).rgb * uSkyRadScale;
   // Where the light enters the box the grid's texture clamps: integrate sigma_t there instead
   // (a point on the box's surface, where a ray enters it, counts as inside; the light never
   // leaves through the faces it runs parallel to)
@@ -155,8 +162,8 @@ void main() {
   float tEnd = min(min(thi.x, thi.y), thi.z);
   vec3 L = vec3(0.0);           // radiance accumulator
   vec3 direct = uDirect * phaseFactor(d);  // E p: single scattering's, constant along the ray
+  float Tr = 1.0;               // transmittance from the eye
   if (tEnd > t) {
-    float Tr = 1.0;             // transmittance from the eye
     float frac = 1.0 - jitter(uvec2(gl_FragCoord.xy));  // the first segment's share of a step
     Sample f0;                  // values at the segment's start
     bool fresh = false;         // whether f0 holds the values at t
@@ -206,6 +213,7 @@ void main() {
       if (t >= tEnd || Tr < TR_MIN) break;
     }
   }
+  L += Tr * uSky;               // the sky behind the medium
   if (uLinearOut) {
     outColor = vec4(L * uGain, 1.0);
     return;
