@@ -87,6 +87,10 @@ class Launched:
             stdout=self.log,
             stderr=subprocess.STDOUT,
             start_new_session=True,
+            # Ctrl-C reaches it as it reaches a terminal's job, even where this run ignores
+            # SIGINT (started in the background of a script): bash cannot trap a signal that
+            # was ignored when it started
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
         )
         self.wait_ready(timeout)
         return self
@@ -147,14 +151,7 @@ class Launched:
         else:
             self.proc.send_signal(sig)
         try:
-            try:
-                self.proc.wait(min(timeout, 8.0))
-            except subprocess.TimeoutExpired:
-                # Seen in the render module's teardown right after the API was killed and
-                # started again: the group's SIGINT went unanswered; SIGTERM to the launcher
-                # itself still stops everything (a gap named in docs/service.md, "Faults")
-                self.proc.send_signal(signal.SIGTERM)
-                self.proc.wait(timeout)
+            self.proc.wait(timeout)
             wait_until(lambda: not [p for p in parts if _running(p)], 5, "processes outlived the launcher")
         finally:
             left = [p for p in parts if _running(p)]
