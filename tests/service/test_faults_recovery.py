@@ -26,19 +26,14 @@ from .faults import (
 )
 
 #: (part, signal): what each case kills.
-#: A known hang (seen in one clean-clone run of three, 2026-12-01): a worker resumed while Redis
-#: restarts after a SIGKILL, in the middle of a precompute, never reported again and its job
-#: never ended; every later job of the module's service then waited behind it. Kept out of the
-#: suite until fixed (docs/service.md, "Faults").
-REDIS_SIGKILL_HANG = pytest.mark.skip(reason="known hang: worker resumed during a Redis SIGKILL restart")
 FAULTS = [
     ("worker", signal.SIGKILL),
     ("supervisor", signal.SIGKILL),
     ("redis", signal.SIGTERM),
-    pytest.param("redis", signal.SIGKILL, marks=REDIS_SIGKILL_HANG),
+    ("redis", signal.SIGKILL),
     ("api", signal.SIGKILL),
 ]
-IDS = ["worker-SIGKILL", "supervisor-SIGKILL", "redis-SIGTERM", "redis-SIGKILL", "api-SIGKILL"]
+IDS = [f"{part}-{signal.Signals(sig).name}" for part, sig in FAULTS]
 #: Seconds from the dead part being back to the job's end (the issue's bound).
 RECOVERY_S = 5.0
 #: The render the render cases make: long enough (a few tens of ms) to be caught in the middle.
@@ -51,6 +46,7 @@ def service(tmp_path_factory):
     svc = Launched(tmp_path_factory.mktemp("faults"), {"SYNC_MAX_PIXELS": 0}).start()
     yield svc
     took = svc.stop(signal.SIGINT, group=True)  # Ctrl-C: every process ends
+    print(f"stopped by Ctrl-C in {took:.2f} s")
     assert took < 20, took
 
 
