@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import faulthandler
 import logging
 import multiprocessing
 import os
@@ -228,6 +229,7 @@ def _die_with_parent() -> None:
 def run(running: Running, name: str) -> None:
     """The worker process's entry point: sets the Mitsuba variant, then works the queue."""
     _die_with_parent()
+    faulthandler.register(signal.SIGUSR1, all_threads=True)  # every thread's stack into the log
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     settings = Settings.from_env()
     from cloudgraph.mitsuba_scene import set_variant

@@ -126,6 +126,14 @@ class Launched:
                         out["worker"] = c
         return out
 
+    def dump_stacks(self) -> None:
+        """The supervisor and its worker process write every thread's stack to the log
+        (SIGUSR1: worker/process.py, worker/__main__.py)."""
+        for part, pid in self.pids().items():
+            if part in ("supervisor", "worker"):
+                os.kill(pid, signal.SIGUSR1)
+        time.sleep(0.5)
+
     def wait_ready(self, timeout: float = 60) -> float:
         """Until Redis, the API and a live worker answer; returns the monotonic time."""
 
@@ -217,9 +225,12 @@ def hold_at_stage(svc: Launched, submit, stages, timeout: float = 60) -> tuple[s
     raise TimeoutError(f"job {job_id} did not reach {stages} in {timeout} s")
 
 
-def wait_status(client, job_id: str, timeout: float, statuses=TERMINAL) -> tuple[dict, float]:
-    """The job once its status is one of ``statuses``, and the monotonic time it was seen;
-    requests that fail meanwhile (the API or Redis away) are tried again."""
+def wait_status(
+    client, job_id: str, timeout: float, statuses=TERMINAL, svc: Launched | None = None
+) -> tuple[dict, float]:
+    """(the job once its status is one of ``statuses``, the monotonic time it was seen);
+    requests that fail meanwhile (the API or Redis away) are tried again. A job that does not
+    end has the stacks of ``svc``'s supervisor and worker process written to its log."""
 
     def ended():
         try:
@@ -230,7 +241,13 @@ def wait_status(client, job_id: str, timeout: float, statuses=TERMINAL) -> tuple
             return None
         return r.json() if r.json()["status"] in statuses else None
 
-    job = wait_until(ended, timeout, f"job {job_id} did not end in {timeout} s", interval=0.05)
+    try:
+        job = wait_until(ended, timeout, f"job {job_id} did not end in {timeout} s", interval=0.05)
+    except TimeoutError as err:
+        if svc is None:
+            raise
+        svc.dump_stacks()
+        raise TimeoutError(f"{err}; the stacks of its worker are in {svc.data_dir / 'service.log'}") from None
     return job, time.monotonic()
 
 

@@ -137,7 +137,7 @@ def test_a_part_killed_mid_precompute_comes_back_and_the_cache_is_the_undisturbe
         # The undisturbed run, then its files and job removed, so that the precompute runs again
         r = c.post("/v1/caches", json=body)
         job_id = f"cache-{r.json()['id']}"
-        end, _ = wait_status(c, job_id, 120)
+        end, _ = wait_status(c, job_id, 120, svc=service)
         assert end["status"] == "finished", end
         files = cache_files(service, end["result"]["keys"])
         undisturbed = {k: p.read_bytes() for k, p in files.items()}
@@ -155,7 +155,7 @@ def test_a_part_killed_mid_precompute_comes_back_and_the_cache_is_the_undisturbe
         t_kill = time.monotonic()
         old = _kill(service, part, sig, held)
         t_back = _back(service, part, old)
-        end, t_done = wait_status(c, job_id, 120)
+        end, t_done = wait_status(c, job_id, 120, svc=service)
 
     assert end["status"] == "finished", end
     assert t_done - t_back < RECOVERY_S, (t_back - t_kill, t_done - t_back)
@@ -174,7 +174,7 @@ def render_scene(service, fog) -> dict:
     scene = fog_scene(fog, RENDER["width"], spp=RENDER["spp"], density=6.0)
     with service.client() as c:  # its cache, ready
         r = c.post("/v1/caches", json=cache_of(scene))
-        end, _ = wait_status(c, f"cache-{r.json()['id']}", 120)
+        end, _ = wait_status(c, f"cache-{r.json()['id']}", 120, svc=service)
         assert end["status"] == "finished", end
     return scene
 
@@ -192,7 +192,7 @@ def test_a_part_killed_mid_render_comes_back_and_the_image_is_the_undisturbed_on
     redis = service.redis()
     with service.client() as c:
         first = _render(c, render_scene)
-        end, _ = wait_status(c, first, 120)
+        end, _ = wait_status(c, first, 120, svc=service)
         assert end["status"] == "finished", end
         undisturbed = c.get(end["result_url"]).content
 
@@ -201,7 +201,7 @@ def test_a_part_killed_mid_render_comes_back_and_the_image_is_the_undisturbed_on
         t_kill = time.monotonic()
         old = _kill(service, part, sig, held)
         t_back = _back(service, part, old)
-        end, t_done = wait_status(c, job_id, 120)
+        end, t_done = wait_status(c, job_id, 120, svc=service)
         assert end["status"] == "finished", end
         image = c.get(end["result_url"])
 
