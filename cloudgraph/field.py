@@ -64,10 +64,6 @@ MS_MAX_POINTS = 1 << 17
 #: dense bench cloud: the camera march averages neighbouring points' turned sets), and its march
 #: step in field voxels.
 MS_DIRECTIONS = 8
-#: A sky's component gathers its single scattering too (what escapes): far less smooth across
-#: directions than what the graph holds, so it takes this many times the directions (on a thin
-#: ball under a uniform sky the field's pixels read within 1.6 % of the closed form at 8, ... at 32).
-SKY_DIRECTIONS = 4
 MS_STEP = 1.0
 #: The gather's steps span at most this optical depth (at the block majorant), and at most
 #: MS_STRIDE times MS_STEP in thin media.
@@ -346,7 +342,7 @@ def _optical_depth(medium, p: mi.Point3f, w: mi.Vector3f, step: float) -> mi.Flo
 def _gather_ms(medium, G_tex, points: np.ndarray, step: float, seed: int, sky: float = 0.0) -> np.ndarray:
     """(M, 3) L_ms at (M, 3) world points: MS_DIRECTIONS flights each, averaged (see bake_field);
     ``sky``: the radiance of a uniform sky that flights leaving the box see (0: none)."""
-    m, k = len(points), MS_DIRECTIONS * (SKY_DIRECTIONS if sky > 0.0 else 1)
+    m, k = len(points), MS_DIRECTIONS
     # Spherical Fibonacci directions, the same set for every point, in a random frame per point
     i = np.arange(k) + 0.5
     z = 1.0 - 2.0 * i / k
