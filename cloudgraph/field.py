@@ -41,10 +41,12 @@ from .field_file import RadianceField, pack_array
 from .field_grid import FieldPoints, to_world, unit_points
 from .light_depth import fit_depth
 from .lights import Lights
+from .mitsuba_scene import envmap_emitter
 from .spatial import NodeGrid, node_bins
 from .tracing import (
     block_majorant,
     cpu_threads,
+    envmap_seen,
     exponential_segment,
     from_jit,
     jit_rng,
@@ -183,8 +185,10 @@ def bake_field(
     gathered = []
     for c, lk in enumerate(looked):
         G = _scatter(near, placed(lk, len(points), 3), (nz, ny, nx, 3))
-        sky = np.array([int(lights.sky and c == lights.count - 1)])
-        gathered.append(chunks(builder, "field_ms", {"points": q, "G": G, "step": step, "sky": sky}))
+        inputs = {"points": q, "G": G, "step": step, "sky": np.array([int(lights.kind(c) == "sky")])}
+        if lights.kind(c) == "envmap":  # what escapes sees the map: the file, read where it runs
+            inputs["envmap"] = np.array([lights.envmaps[c - lights.count + len(lights.envmaps)]])
+        gathered.append(chunks(builder, "field_ms", inputs))
     progress("field", 0.2)
     t_ms = time.perf_counter() - t0
 
@@ -227,7 +231,7 @@ def bake_field(
         del meta["light"]
         meta["lights"] = []
         for c in range(lights.count):
-            entry = {"type": "sky"} if c >= len(lights.directions) else {"type": "directional"}
+            entry = {"type": lights.kind(c)}
             if entry["type"] == "directional":
                 entry["direction"] = lights.directions[c].tolist()
                 entry["tau"] = "tau_light" if c == 0 else f"tau_light_{c}"
@@ -272,7 +276,10 @@ def field_chunk(builder, stage: str, index: int, inputs: dict) -> tuple[np.ndarr
         values = np.array(tau, np.float32)[:, None]
     else:
         sky = float(inputs["sky"][0]) if "sky" in inputs else 0.0
-        values = _gather_ms(medium, linear_texture(np.asarray(inputs["G"])), q, step, seed=a, sky=sky)
+        env = envmap_emitter(str(inputs["envmap"][0])) if "envmap" in inputs else None
+        values = _gather_ms(
+            medium, linear_texture(np.asarray(inputs["G"])), q, step, seed=a, sky=sky, env=env
+        )
     return np.array([a]), values
 
 
@@ -339,9 +346,12 @@ def _optical_depth(medium, p: mi.Point3f, w: mi.Vector3f, step: float) -> mi.Flo
     return dr.minimum(tau, TAU_MAX)
 
 
-def _gather_ms(medium, G_tex, points: np.ndarray, step: float, seed: int, sky: float = 0.0) -> np.ndarray:
+def _gather_ms(
+    medium, G_tex, points: np.ndarray, step: float, seed: int, sky: float = 0.0, env=None
+) -> np.ndarray:
     """(M, 3) L_ms at (M, 3) world points: MS_DIRECTIONS flights each, averaged (see bake_field);
-    ``sky``: the radiance of a uniform sky that flights leaving the box see (0: none)."""
+    ``sky``: the radiance of a uniform sky that flights leaving the box see (0: none); ``env``:
+    an environment map's emitter that they see instead (None: none)."""
     m, k = len(points), MS_DIRECTIONS
     # Spherical Fibonacci directions, the same set for every point, in a random frame per point
     i = np.arange(k) + 0.5
@@ -357,17 +367,17 @@ def _gather_ms(medium, G_tex, points: np.ndarray, step: float, seed: int, sky: f
     w = dr.gather(mi.Vector3f, to_jit(mi.Vector3f, fib), j)
     d = fr.to_world(w)
     o = dr.gather(mi.Point3f, to_jit(mi.Point3f, points), point)
-    L = _march_ms(medium, G_tex, o, d, step, sky)
+    L = _march_ms(medium, G_tex, o, d, step, sky, env)
     dr.eval(L)  # one kernel: read channel by channel, each would run the march again
     out = from_jit(L, np.float64)
     return out.reshape(m, k, 3).mean(axis=1).astype(np.float32)
 
 
 @dr.syntax
-def _march_ms(medium, G_tex, o: mi.Point3f, d: mi.Vector3f, step: float, sky: float) -> mi.Color3f:
+def _march_ms(medium, G_tex, o: mi.Point3f, d: mi.Vector3f, step: float, sky: float, env) -> mi.Color3f:
     """int T_r sigma_t G dt along each ray to the box boundary (trapezoid in optical depth, as the
-    field estimator marches), plus T_r to the boundary times ``sky``; blocks without density are
-    crossed in one step."""
+    field estimator marches), plus T_r to the boundary times ``sky`` or the environment map
+    ``env`` seen along the ray; blocks without density are crossed in one step."""
     t, t_end = medium.box_interval(o, d)
 
     def at(t):
@@ -397,4 +407,6 @@ def _march_ms(medium, G_tex, o: mi.Point3f, d: mi.Vector3f, step: float, sky: fl
     L += dr.select(t < t_end, Tr, 0.0) * G0
     if dr.hint(sky > 0.0, mode="scalar"):  # the sky's component only
         L += dr.select(t < t_end, 0.0, Tr) * sky
+    if dr.hint(env is not None, mode="scalar"):  # an environment map's
+        L += dr.select(t < t_end, 0.0, Tr) * envmap_seen(env, d)
     return L

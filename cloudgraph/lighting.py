@@ -19,7 +19,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .tracing import DensityField, jit_rng, ratio_tracking, to_jit, towards_light, uniform_sphere
+from .mitsuba_scene import envmap_emitter
+from .tracing import DensityField, from_jit, jit_rng, ratio_tracking, to_jit, towards_light, uniform_sphere
 
 #: Nodes per chunk of the direct lighting (chunks may run on other workers).
 LIGHTING_CHUNK = 1 << 15
@@ -74,6 +75,27 @@ def sky_radiance(
     return np.repeat(transmittance[:, None], 3, axis=1)
 
 
+def envmap_radiance(
+    field: DensityField, positions: np.ndarray, emitter, samples: int, seed: int, first: int
+) -> np.ndarray:
+    """(N, 3) in-scattered radiance of an environment map (Mitsuba's ``envmap`` emitter, scale 1)
+    at each node (isotropic phase): (1/4pi) E[L(w) T_r(x, w) / pdf(w)] over ``samples``
+    directions per node importance-sampled from the map (Mitsuba's sample_direction)."""
+    n = len(positions)
+    if n == 0:
+        return np.zeros((0, 3))
+    m, lane = n * samples, first * samples
+    rng = jit_rng(m, seed + lane, lane)
+    node = dr.arange(mi.UInt32, m) // samples
+    it = dr.zeros(mi.Interaction3f, m)
+    it.p = dr.gather(mi.Point3f, to_jit(mi.Point3f, positions), node)
+    ds, weight = emitter.sample_direction(it, mi.Point2f(rng.next_float32(), rng.next_float32()))
+    Tr = ratio_tracking(field, it.p, ds.d, rng, mi.Bool(True))
+    L = mi.Color3f(weight) * Tr
+    dr.eval(L)  # one kernel for the three channels
+    return from_jit(L, np.float64).reshape(n, samples, 3).mean(axis=1) / (4.0 * np.pi)
+
+
 def _mean_transmittance(field, positions, direction, samples: int, seed: int, first: int) -> np.ndarray:
     """(N,) mean of ``samples`` ratio-tracking estimates of T_r per node, along ``direction(rng)``."""
     n = len(positions)
@@ -89,7 +111,8 @@ def _mean_transmittance(field, positions, direction, samples: int, seed: int, fi
 def lighting_chunk(field: DensityField, index: int, inputs: dict) -> tuple[np.ndarray, np.ndarray]:
     """(first node, L_d) of one chunk of nodes: inputs ``positions``, ``light_dir`` and
     ``irradiance`` ((3,) or (D, 3): one per directional component), ``sky`` (whether a sky
-    component follows, at radiance 1; absent: none), ``samples`` and ``seed``, as
+    component follows, at radiance 1; absent: none), ``envmaps`` (the environment maps' files,
+    the last components, at scale 1; absent: none), ``samples`` and ``seed``, as
     :func:`direct_radiance` takes them. L_d is (n, 3 K), the K components side by side
     (lights.py)."""
     a = index * LIGHTING_CHUNK
@@ -101,7 +124,14 @@ def lighting_chunk(field: DensityField, index: int, inputs: dict) -> tuple[np.nd
         direct_radiance(field, positions, d, e, samples, seed + k * COMPONENT_SEED, a)
         for k, (d, e) in enumerate(zip(directions, irradiance, strict=True))
     ]
+    k = len(directions)
     if "sky" in inputs and int(inputs["sky"][0]):
-        seed_sky = seed + len(directions) * COMPONENT_SEED
-        parts.append(sky_radiance(field, positions, SKY_SAMPLES * samples, seed_sky, a))
+        parts.append(sky_radiance(field, positions, SKY_SAMPLES * samples, seed + k * COMPONENT_SEED, a))
+        k += 1
+    for path in inputs.get("envmaps", ()):
+        emitter = envmap_emitter(str(path))
+        parts.append(
+            envmap_radiance(field, positions, emitter, SKY_SAMPLES * samples, seed + k * COMPONENT_SEED, a)
+        )
+        k += 1
     return np.array([a]), np.concatenate(parts, axis=1)

@@ -2,7 +2,8 @@
 
 Transport is linear, so a cache holds one radiance per light *component*: each directional light
 in the list's order, then one for the sky (all ``sky`` lights share it: a uniform environment of
-any colour is the same component times its radiance). What a component holds:
+any colour is the same component times its radiance), then each environment map in the list's
+order. What a component holds:
 
 - a v1 scene (one ``light``): the light's radiance at its irradiance, as before v1.1 (its keys
   and files unchanged);
@@ -14,11 +15,15 @@ any colour is the same component times its radiance). What a component holds:
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 
-from .scene import LightSpec, Scene
+from .errors import SceneError
+from .scene import Scene
 
 
 @dataclass(frozen=True)
@@ -27,31 +32,38 @@ class Lights:
 
     Attributes:
         directions: (D, 3) unit directions the directional components travel.
-        sky: whether the last component is the sky's.
-        intensity: (K, 3) each component's irradiance (directional) or radiance (sky), RGB;
-            K = D + sky.
+        sky: whether the component after the directional ones is the sky's.
+        intensity: (K, 3) each component's irradiance (directional), radiance (sky) or scale
+            (envmap), RGB; K = D + sky + E.
         basis: whether caches hold the components at unit intensity (v1.1 ``lights``) or at
             their intensity (a v1 ``light``).
+        envmaps: the E environment maps' files (.exr), the last components.
     """
 
     directions: np.ndarray
     sky: bool
     intensity: np.ndarray
     basis: bool
+    envmaps: tuple[str, ...] = ()
 
     @classmethod
     def of(cls, scene: Scene) -> Lights:
         lights = scene.light_list()
-        directional = [li for li in lights if isinstance(li, LightSpec)]
-        skies = [li for li in lights if not isinstance(li, LightSpec)]
+        directional = [li for li in lights if li.type == "directional"]
+        skies = [li for li in lights if li.type == "sky"]
+        envmaps = [li for li in lights if li.type == "envmap"]
+        if any(e.path is None for e in envmaps):
+            raise SceneError("an envmap light needs its 'path' here (ids are for the HTTP API)")
         intensity = [li.intensity_rgb() for li in directional]
         if skies:
             intensity.append(tuple(np.sum([s.intensity_rgb() for s in skies], axis=0)))
+        intensity += [e.intensity_rgb() for e in envmaps]
         return cls(
             directions=np.array([li.unit_direction() for li in directional], float).reshape(-1, 3),
             sky=bool(skies),
             intensity=np.array(intensity, float).reshape(-1, 3),
             basis=scene.lights is not None,
+            envmaps=tuple(e.path for e in envmaps),
         )
 
     @property
@@ -72,15 +84,45 @@ class Lights:
     @property
     def sky_radiance(self) -> np.ndarray:
         """(3,) the sky's radiance (0 without a sky)."""
-        return self.intensity[-1] if self.sky else np.zeros(3)
+        return self.intensity[len(self.directions)] if self.sky else np.zeros(3)
+
+    @property
+    def envmap_scale(self) -> np.ndarray:
+        """(E, 3) each environment map's scale."""
+        return self.intensity[len(self.intensity) - len(self.envmaps) :]
+
+    def kind(self, k: int) -> str:
+        """Component k's kind: ``directional``, ``sky`` or ``envmap``."""
+        d = len(self.directions)
+        return "directional" if k < d else "sky" if self.sky and k == d else "envmap"
 
     def key(self) -> list:
-        """What the radiance key holds of v1.1 lights: kinds and directions, no intensities."""
+        """What the radiance key holds of v1.1 lights: kinds and directions (an environment
+        map: its file's sha256), no intensities."""
         doc = [{"directional": d.round(9).tolist()} for d in self.directions]
-        return doc + ([{"sky": True}] if self.sky else [])
+        doc += [{"sky": True}] if self.sky else []
+        return doc + [{"envmap": file_digest(path)} for path in self.envmaps]
 
     def mixed(self, components: np.ndarray) -> np.ndarray:
         """(..., 3) sum over k of mix[k] * components[k], for (K, ..., 3) cached components."""
         c = np.asarray(components)
         m = self.mix.reshape((self.count,) + (1,) * (c.ndim - 2) + (3,))
         return (c * m.astype(c.dtype)).sum(axis=0)
+
+
+@lru_cache(maxsize=64)
+def _digest(path: str, mtime_ns: int, size: int) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def file_digest(path: str) -> str:
+    """sha256 of a file's bytes (kept per path, size and modification time).
+
+    Raises:
+        SceneError: the file cannot be read.
+    """
+    try:
+        st = Path(path).stat()
+        return _digest(str(path), st.st_mtime_ns, st.st_size)
+    except OSError as err:
+        raise SceneError(f"cannot read the environment map {path}: {err.strerror}") from None

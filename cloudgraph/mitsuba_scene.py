@@ -10,6 +10,7 @@ import os
 
 import numpy as np
 
+from .errors import SceneError
 from .scene import CameraSpec, PhaseSpec, Scene
 from .volume import Volume
 
@@ -134,14 +135,39 @@ def scene_dict(scene: Scene, volume: Volume, integrator: dict | None = None) -> 
 
 
 def emitter_dict(light) -> dict:
-    """A scene light as Mitsuba's emitter: ``directional``, or a ``sky`` as ``constant``."""
+    """A scene light as Mitsuba's emitter: ``directional``, a ``sky`` as ``constant``, an
+    ``envmap`` as ``envmap`` (its file read by Mitsuba)."""
     if light.type == "sky":
         return {"type": "constant", "radiance": {"type": "rgb", "value": list(light.intensity_rgb())}}
+    if light.type == "envmap":
+        return {"type": "envmap", "filename": str(light.path), "scale": float(light.scale)}
     return {
         "type": "directional",
         "direction": list(light.unit_direction()),
         "irradiance": {"type": "rgb", "value": list(light.irradiance_rgb())},
     }
+
+
+_ENVMAPS: dict = {}
+
+
+def envmap_emitter(path: str):
+    """Mitsuba's ``envmap`` emitter of an .exr file at scale 1, made once per file and process
+    (a variant must be set): the engine looks environment radiance up and samples directions
+    from it with Mitsuba's own code, so its orientation and importance sampling are volpath's.
+
+    Raises:
+        SceneError: the file is not an image Mitsuba can read as an environment.
+    """
+    import mitsuba as mi
+
+    key = (str(path), mi.variant())
+    if key not in _ENVMAPS:
+        try:
+            _ENVMAPS[key] = mi.load_dict({"type": "envmap", "filename": str(path)})
+        except Exception as err:  # Mitsuba raises RuntimeError with the file's problem
+            raise SceneError(f"cannot read the environment map {path}: {str(err).splitlines()[-1]}") from None
+    return _ENVMAPS[key]
 
 
 def volpath_dict(max_depth: int, rr: bool = False) -> dict:

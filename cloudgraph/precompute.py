@@ -112,6 +112,8 @@ def lighting_inputs(positions: np.ndarray, lights: Lights, params: BuildParams) 
         inputs["light_dir"], inputs["irradiance"] = lights.directions[0], lights.cached[0]
     else:
         inputs["sky"] = np.array([int(lights.sky)])
+        if lights.envmaps:
+            inputs["envmaps"] = np.array(lights.envmaps)
     return inputs
 
 

@@ -222,6 +222,7 @@ class SkySpec(_Model):
     def _intensity(cls, v):
         # one message, not one per member of the scalar | RGB union
         values = v if isinstance(v, list | tuple) else [v]
+
         def number(c) -> bool:
             return not isinstance(c, bool) and isinstance(c, int | float) and math.isfinite(c) and c >= 0
 
@@ -235,10 +236,34 @@ class SkySpec(_Model):
         return (e, e, e) if isinstance(e, float | int) else tuple(e)
 
 
+class EnvmapSpec(_Model):
+    """A lat-long HDR environment (Mitsuba's ``envmap``, the same orientation: the image's top
+    row is +y), from a ``path`` (CLI: an .exr file, relative to the scene file) or an uploaded
+    image's ``id`` (HTTP API), times ``scale``; seen behind and through the medium (v1.1)."""
+
+    type: Literal["envmap"] = "envmap"
+    path: str | None = Field(None, description="An .exr file, relative to the scene file")
+    id: str | None = Field(None, description="An uploaded environment's id (HTTP API)")
+    scale: float = Field(1.0, ge=0.0, le=1e6, description="Multiplies the image's radiance")
+
+    @model_validator(mode="after")
+    def _one_source(self) -> EnvmapSpec:
+        if (self.path is None) == (self.id is None):
+            raise ValueError("give exactly one of 'path' (an .exr file) or 'id' (an uploaded environment)")
+        return self
+
+    @model_serializer(mode="wrap")
+    def _dump(self, handler):
+        return {k: v for k, v in handler(self).items() if v is not None}
+
+    def intensity_rgb(self) -> Vec3:
+        return (self.scale,) * 3
+
+
 #: Most lights in a scene's ``lights`` (scene spec v1.1).
 MAX_LIGHTS = 8
-Light = Annotated[LightSpec | SkySpec, Field(discriminator="type")]
-LIGHT_TYPES = {"directional": LightSpec, "sky": SkySpec}
+Light = Annotated[LightSpec | SkySpec | EnvmapSpec, Field(discriminator="type")]
+LIGHT_TYPES = {"directional": LightSpec, "sky": SkySpec, "envmap": EnvmapSpec}
 
 
 def _brief(v) -> str:
@@ -362,6 +387,14 @@ def parse_scene(data: dict | str, base_dir: str | Path | None = None) -> Scene:
     if scene.volume.path is not None and base_dir is not None:
         path = Path(base_dir) / scene.volume.path
         scene = scene.model_copy(update={"volume": scene.volume.model_copy(update={"path": str(path)})})
+    if scene.lights is not None and base_dir is not None:
+        lights = tuple(
+            li.model_copy(update={"path": str(Path(base_dir) / li.path)})
+            if li.type == "envmap" and li.path is not None
+            else li
+            for li in scene.lights
+        )
+        scene = scene.model_copy(update={"lights": lights})
     return scene
 
 

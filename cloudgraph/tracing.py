@@ -219,6 +219,14 @@ def single_segment(dtau: mi.Float, tau0: mi.Float, tau1: mi.Float) -> mi.Float:
     return dtau * dr.select(small, dr.exp(-tau0) * (1.0 - 0.5 * a), ratio)
 
 
+def envmap_seen(emitter, d: mi.Vector3f) -> mi.Color3f:
+    """The radiance an environment map (a Mitsuba emitter) sends along -d: what a ray of
+    direction d that leaves the medium sees."""
+    si = dr.zeros(mi.SurfaceInteraction3f, dr.width(d))
+    si.wi = -d
+    return mi.Color3f(emitter.eval(si))
+
+
 def uniform_sphere(rng: mi.PCG32) -> mi.Vector3f:
     """Isotropic directions."""
     return mi.warp.square_to_uniform_sphere(mi.Point2f(rng.next_float32(), rng.next_float32()))

@@ -12,7 +12,7 @@ import math
 
 from fastapi import HTTPException
 
-from cloudgraph.scene import CameraSpec, LightSpec, MediumSpec, Scene, SkySpec, VolumeSpec
+from cloudgraph.scene import CameraSpec, EnvmapSpec, LightSpec, MediumSpec, Scene, SkySpec, VolumeSpec
 from cloudgraph.store import VolumeStore
 from cloudgraph_service.errors import shown
 from cloudgraph_service.settings import Settings
@@ -70,7 +70,13 @@ def check_camera(camera: CameraSpec, settings: Settings, where: str) -> None:
         )
 
 
-def check_light(light: LightSpec | SkySpec, where: str) -> None:
+def check_light(light: LightSpec | SkySpec | EnvmapSpec, where: str) -> None:
+    if light.type == "envmap":
+        raise InputError(
+            where,
+            "environment maps are not taken over HTTP yet (there is no upload of them); render "
+            "an envmap scene with the CLI, or use a 'sky' light",
+        )
     if light.type == "sky":
         if max(light.intensity_rgb()) > MAX_IRRADIANCE:
             raise InputError(f"{where}.radiance", f"must be at most {MAX_IRRADIANCE:g}")

@@ -55,11 +55,13 @@ import mitsuba as mi
 import numpy as np
 
 from ..errors import SceneError
+from ..mitsuba_scene import envmap_emitter
 from ..options import ESTIMATORS, PHASE_ESTIMATORS
 from ..spatial import NodeGrid
 from ..tracing import (
     BLOCK,
     DensityField,
+    envmap_seen,
     exponential_segment,
     linear_texture,
     ratio_tracking,
@@ -238,6 +240,7 @@ class GraphIntegrator(mi.SamplingIntegrator):
             tuple(float(c[0]) for c in medium.world_to_unit @ mi.Vector3f(*t)) for t in self.to_light
         ]
         self.has_sky = bool(lights.sky)
+        self.envs = [envmap_emitter(path) for path in lights.envmaps]  # Mitsuba's envmap emitters
         self.set_intensities(lights)
         self.eps2 = (0.05 * node_radius) ** 2  # keeps w_a finite at a node's centre
         self.step = float(step) if step else 0.5 * node_radius
@@ -249,12 +252,19 @@ class GraphIntegrator(mi.SamplingIntegrator):
             dr.opaque(mi.Color3f, tuple(e)) for e in lights.intensity[: len(lights.directions)]
         ]
         self.sky = dr.opaque(mi.Color3f, tuple(lights.sky_radiance))
+        self.env_scale = [dr.opaque(mi.Color3f, tuple(e)) for e in lights.envmap_scale]
 
-    def _background(self, seen: mi.Bool) -> mi.Color3f:
-        """The sky's radiance where ``seen`` (rays that leave the medium), else 0; 0 without a sky."""
-        if not self.has_sky:  # (a Python-level switch: no sky, no term in the kernel)
-            return mi.Color3f(0.0)
-        return dr.select(seen, self.sky, 0.0)
+    def _background(self, seen: mi.Bool, d: mi.Vector3f) -> mi.Color3f:
+        """What a ray of direction d sees where ``seen`` (rays that leave the medium): the sky's
+        radiance and the environment maps'; 0 elsewhere, and without them."""
+        L = mi.Color3f(0.0)
+        if self.has_sky:  # (Python-level switches: no sky or map, no term in the kernel)
+            L += self.sky
+        for env, scale in zip(self.envs, self.env_scale, strict=True):
+            L += scale * envmap_seen(env, d)
+        if not self.has_sky and not self.envs:
+            return L
+        return dr.select(seen, L, 0.0)
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         n = dr.width(ray.o)
@@ -283,8 +293,8 @@ class GraphIntegrator(mi.SamplingIntegrator):
         w = uniform_sphere(rng)
         t2, collided2 = sample_collision(self.medium, p, w, rng, collided)
         L_ms = mi.Color3f(*self.albedo) * self.grid.lookup(p + t2 * w, self.eps2, collided2)
-        L_in = L_ss + dr.select(collided2, L_ms, self._background(collided))
-        return dr.select(collided, mi.Color3f(*self.albedo) * L_in, self._background(active))
+        L_in = L_ss + dr.select(collided2, L_ms, self._background(collided, w))
+        return dr.select(collided, mi.Color3f(*self.albedo) * L_in, self._background(active, d))
 
     @dr.syntax
     def _gather_phase(self, o, d, rng, active):
@@ -298,7 +308,7 @@ class GraphIntegrator(mi.SamplingIntegrator):
         # A sky: seen behind the medium, and where a flight leaves it (weight p / pdf = 1).
         albedo = mi.Color3f(*self.albedo)
         t, alive = sample_collision(self.medium, o, d, rng, active & (self.bounces > 0))
-        L = self._background(active & ~alive)  # Radiance accumulator
+        L = self._background(active & ~alive, d)  # Radiance accumulator
         p = mi.Point3f(o + t * d)  # Scattering point
         w_in = mi.Vector3f(d)  # Direction the path (from the camera) arrived at p in
         beta = mi.Color3f(1.0)  # Path throughput: albedo per scattering event
@@ -311,7 +321,7 @@ class GraphIntegrator(mi.SamplingIntegrator):
                 L += beta * Tr * E * hg_phase(self.lobes, dr.dot(tl, w_in))
             w = sample_phase(self.lobes, w_in, rng)
             t2, hit = sample_collision(self.medium, p, w, rng, alive)
-            L += beta * self._background(alive & ~hit)
+            L += beta * self._background(alive & ~hit, w)
             k += 1
             q = mi.Point3f(p + t2 * w)
             if dr.hint(self.tail, mode="scalar"):  # unbounded depth: the graph takes over at q
@@ -334,7 +344,7 @@ class GraphIntegrator(mi.SamplingIntegrator):
         # Sample p' with pdf sigma_t T_r; the estimate of Eq. 4.24 is albedo L'_search(p')
         t, collided = sample_collision(self.medium, o, d, rng, active)
         L = self.grid.lookup(o + t * d, self.eps2, collided)
-        return dr.select(collided, mi.Color3f(*self.albedo) * L, self._background(active))
+        return dr.select(collided, mi.Color3f(*self.albedo) * L, self._background(active, d))
 
     @dr.syntax
     def _march(self, o, d, rng, active):
@@ -355,7 +365,7 @@ class GraphIntegrator(mi.SamplingIntegrator):
             Tr *= seg_Tr
             t += dt
             active &= (t < t_end) & (Tr > 1e-4)
-        return L + Tr * self._background(mi.Bool(True))
+        return L + Tr * self._background(mi.Bool(True), d)
 
     def _field_at(self, p, active):
         """(sigma_t, [tau_light per directional light], L_ms) at world points p (field.py)."""
@@ -432,7 +442,7 @@ class GraphIntegrator(mi.SamplingIntegrator):
             steps += 1
             started |= ~empty
             active &= (t < t_end) & (Tr > FIELD_TR_MIN) & (steps < f.max_steps)
-        return L + Tr * self._background(mi.Bool(True))
+        return L + Tr * self._background(mi.Bool(True), d)
 
     def aov_names(self):
         return []

@@ -120,6 +120,9 @@ function lightComponents(list) {
   if (!Array.isArray(list) || !list.length) throw new FieldError("the field's header has no valid lights");
   const suns = list.filter((c) => c && c.type === "directional");
   const skies = list.filter((c) => c && c.type === "sky");
+  if (list.some((c) => c && c.type === "envmap")) {
+    throw new FieldError("the real-time view does not draw environment maps: render this cache on the server");
+  }
   if (suns.length + skies.length !== list.length) throw new FieldError("the field's header has a light of unknown type");
   if (suns.length > 1) {
     throw new FieldError(`the real-time view draws one directional light, and this cache has ${suns.length}: render it on the server`);
