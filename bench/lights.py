@@ -28,7 +28,7 @@ from cloudgraph.render import GraphRenderer
 from cloudgraph.scene import parse_scene
 
 from .harness import LIGHT, RELIGHT, _scene, bench_scenes, cameras, reference
-from .report import machine, row_md, table
+from .report import add_accuracy_args, machine, row_md, table
 
 SKY = [0.25, 0.35, 0.55]
 SETUPS = {
@@ -149,14 +149,8 @@ def main(argv=None) -> None:
     from cloudgraph.mitsuba_scene import set_variant
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--scenes", nargs="*", default=["sphere", "noise", "holdout"])
-    p.add_argument("--albedo", nargs="*", type=float, default=[1.0, 0.8])
+    add_accuracy_args(p, ["sphere", "noise", "holdout"])
     p.add_argument("--setups", nargs="*", default=list(SETUPS), choices=list(SETUPS))
-    p.add_argument("--ref-spp", type=int, default=4096)
-    p.add_argument("--gather-spp", type=int, default=1024)
-    p.add_argument("--size", type=int, default=64)
-    p.add_argument("--quality", default="default")
-    p.add_argument("--out", default="bench/results")
     a = p.parse_args(argv)
     set_variant()
     run(a.scenes, a.albedo, a.setups, a.ref_spp, a.gather_spp, a.size, a.quality, Path(a.out))

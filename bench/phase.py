@@ -34,7 +34,7 @@ from cloudgraph.render import GraphRenderer, render_volpath
 from cloudgraph.scene import PhaseSpec
 
 from .harness import LIGHT, _scene, bench_scenes, cameras, reference
-from .report import machine, row_md, table
+from .report import add_accuracy_args, machine, row_md, table
 
 COLUMNS = [
     "scene",
@@ -179,14 +179,8 @@ def main(argv=None) -> None:
     from cloudgraph.mitsuba_scene import set_variant
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--scenes", nargs="*", default=None)
+    add_accuracy_args(p)
     p.add_argument("--g", nargs="*", type=float, default=[0.5, 0.85])
-    p.add_argument("--albedo", nargs="*", type=float, default=[1.0, 0.8])
-    p.add_argument("--ref-spp", type=int, default=4096)
-    p.add_argument("--gather-spp", type=int, default=1024)
-    p.add_argument("--size", type=int, default=64)
-    p.add_argument("--quality", default="default")
-    p.add_argument("--out", default="bench/results")
     a = p.parse_args(argv)
     set_variant()
     run(a.scenes, a.g, a.albedo, a.ref_spp, a.gather_spp, a.size, a.quality, Path(a.out))

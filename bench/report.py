@@ -130,3 +130,14 @@ def write_results(out_dir: Path, mode: str, result: dict, text: str) -> None:
     (out_dir / f"{stem}.json").write_text(json.dumps(result, indent=2))
     (out_dir / f"{stem}.md").write_text(text)
     print(text)
+
+
+def add_accuracy_args(p, scenes=None) -> None:
+    """The options the accuracy benches (phase.py, lights.py) share."""
+    p.add_argument("--scenes", nargs="*", default=scenes)
+    p.add_argument("--albedo", nargs="*", type=float, default=[1.0, 0.8])
+    p.add_argument("--ref-spp", type=int, default=4096)
+    p.add_argument("--gather-spp", type=int, default=1024)
+    p.add_argument("--size", type=int, default=64)
+    p.add_argument("--quality", default="default")
+    p.add_argument("--out", default="bench/results")

@@ -155,3 +155,15 @@ def open_scene(pg, service, data_dir) -> None:
     pg.click("#precompute")
     pg.wait_for_selector("#cache-state[data-state=ready], #cache-state[data-state=failed]", timeout=300_000)
     assert pg.get_attribute("#cache-state", "data-state") == "ready", errors_shown(pg)
+
+
+def compare_realtime(page) -> dict:
+    """Runs the page's "compare real-time view" at 128 px (volpath at 8 spp) and returns its
+    result's data attributes (``relMae``, ``relMaeVolpath``) and ``text``; asserts it finished."""
+    page.select_option("#compare-size", "128")
+    page.fill("#compare-volpath-spp", "8")
+    page.click("#compare-realtime")
+    page.wait_for_selector("#compare-result[data-state=done], #compare-result[data-state=failed]")
+    assert page.get_attribute("#compare-result", "data-state") == "done", errors_shown(page)
+    result = page.eval_on_selector("#compare-result", "e => ({...e.dataset})")
+    return {**result, "text": page.inner_text("#compare-result")}

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import re
 
-from .page import errors_shown, frames_drawn, orbit, shot, wait_rest
+from .page import compare_realtime, errors_shown, frames_drawn, orbit, shot, wait_rest
 
 #: The real-time view against the server's `field` render of the same camera, at rest.
 MAX_FIELD_REL_MAE = 0.01
@@ -14,14 +14,8 @@ MAX_FIELD_REL_MAE = 0.01
 def test_compare_realtime_with_server_field(page):
     """At rest the page's view is the server's `field` render of the same camera and size,
     within MAX_FIELD_REL_MAE; the comparison with volpath is shown beside it."""
-    page.select_option("#compare-size", "128")
-    page.fill("#compare-volpath-spp", "8")
-    page.click("#compare-realtime")
-    page.wait_for_selector("#compare-result[data-state=done], #compare-result[data-state=failed]")
-    assert page.get_attribute("#compare-result", "data-state") == "done", errors_shown(page)
-    rel = float(page.get_attribute("#compare-result", "data-rel-mae"))
-    rel_volpath = float(page.get_attribute("#compare-result", "data-rel-mae-volpath"))
-    text = page.inner_text("#compare-result")
+    result = compare_realtime(page)
+    rel, rel_volpath, text = float(result["relMae"]), float(result["relMaeVolpath"]), result["text"]
     print(f"real-time vs server field: relMAE {rel:.4f}; vs volpath 8 spp {rel_volpath:.4f}")
     assert 0 <= rel < MAX_FIELD_REL_MAE, text
     assert 0 < rel_volpath < 1, text
