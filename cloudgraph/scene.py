@@ -266,6 +266,28 @@ Light = Annotated[LightSpec | SkySpec | EnvmapSpec, Field(discriminator="type")]
 LIGHT_TYPES = {"directional": LightSpec, "sky": SkySpec, "envmap": EnvmapSpec}
 
 
+def check_light_list(data):
+    """A model's input ``data`` whose ``lights`` is checked light by light, each error named
+    lights.<i>.<field> (a tagged union's errors would name the tag and every member)."""
+    if not isinstance(data, dict) or data.get("lights") is None:
+        return data
+    lights = data["lights"]
+    if not isinstance(lights, list | tuple) or not 1 <= len(lights) <= MAX_LIGHTS:
+        raise ValueError(f"lights must be a list of 1 to {MAX_LIGHTS} lights, got {_brief(lights)}")
+    for i, light in enumerate(lights):
+        if isinstance(light, LightSpec | SkySpec | EnvmapSpec):  # already a checked light
+            continue
+        kind = light.get("type") if isinstance(light, dict) else None
+        if not isinstance(kind, str) or kind not in LIGHT_TYPES:
+            raise ValueError(f"lights.{i}.type must be one of {', '.join(LIGHT_TYPES)}, got {kind!r}")
+        try:
+            LIGHT_TYPES[kind].model_validate(light)
+        except ValidationError as err:
+            parts = format_validation_error(err).split("; ")
+            raise ValueError("; ".join(f"lights.{i}.{part}" for part in parts)) from None
+    return data
+
+
 def _brief(v) -> str:
     return f"{len(v)} of them" if isinstance(v, list | tuple) else repr(v)[:40]
 
@@ -326,24 +348,7 @@ class Scene(_Model):
     @model_validator(mode="before")
     @classmethod
     def _light_list(cls, data):
-        # Each light checked on its own, its errors named lights.<i>.<field> (a tagged union's
-        # errors would name the tag and every member)
-        if not isinstance(data, dict) or data.get("lights") is None:
-            return data
-        lights = data["lights"]
-        if not isinstance(lights, list | tuple) or not 1 <= len(lights) <= MAX_LIGHTS:
-            raise ValueError(f"lights must be a list of 1 to {MAX_LIGHTS} lights, got {_brief(lights)}")
-        for i, light in enumerate(lights):
-            kind = light.get("type") if isinstance(light, dict) else None
-            if not isinstance(kind, str) or kind not in LIGHT_TYPES:
-                raise ValueError(f"lights.{i}.type must be one of {', '.join(LIGHT_TYPES)}, got {kind!r}")
-            try:
-                LIGHT_TYPES[kind].model_validate(light)
-            except ValidationError as err:
-                raise ValueError(
-                    "; ".join(f"lights.{i}.{part}" for part in format_validation_error(err).split("; "))
-                ) from None
-        return data
+        return check_light_list(data)
 
     @model_validator(mode="after")
     def _one_light_field(self) -> Scene:

@@ -1,5 +1,5 @@
-"""Content-addressed storage of uploaded volumes, least-recently-used eviction, and the
-temporary files that dead writers leave.
+"""Content-addressed storage of uploaded volumes and environment maps, least-recently-used
+eviction, and the temporary files that dead writers leave.
 
 A volume's id is the sha256 of its file's bytes, so the same file uploaded twice is one volume.
 Files are written under a temporary name and renamed into place. An upload's temporary files
@@ -30,8 +30,24 @@ CHUNK = 1 << 20
 class VolumeStore:
     """Uploaded volumes: ``<root>/<id>.vdb|.vol`` with ``<id>.json`` describing it."""
 
+    #: What is stored, in the words of its errors.
+    WHAT = "a .vdb or .vol file"
+
     def __init__(self, root: str | Path):
         self.root = Path(root)
+
+    def describe(self, tmp: str) -> tuple[dict, str]:
+        """(info, extension) of an upload's bytes in ``tmp``.
+
+        Raises:
+            VolumeError: not a readable volume.
+        """
+        with open(tmp, "rb") as f:
+            head = f.read(8)
+        ext = ".vdb" if len(head) == 8 and int.from_bytes(head, "little") == VDB_MAGIC else ".vol"
+        info = volume_info(tmp)
+        del info["path"]
+        return info, ext
 
     def put(self, stream: BinaryIO, max_bytes: int, filename: str = "", tag: str = "") -> tuple[dict, bool]:
         """Stores an upload after checking that it is a readable volume.
@@ -59,15 +75,12 @@ class VolumeStore:
                     h.update(chunk)
                     f.write(chunk)
             if size == 0:
-                raise VolumeError("upload is empty: send a .vdb or .vol file in the multipart field 'file'")
+                raise VolumeError(f"upload is empty: send {self.WHAT} in the multipart field 'file'")
             vid = h.hexdigest()
             if self.info(vid) is not None:
                 return self.info(vid), False
-            with open(tmp, "rb") as f:
-                head = f.read(8)
-            ext = ".vdb" if len(head) == 8 and int.from_bytes(head, "little") == VDB_MAGIC else ".vol"
             try:
-                info = volume_info(tmp)
+                info, ext = self.describe(tmp)
             except VolumeError as err:  # name the upload, not the temporary file
                 name = Path(filename).name or "the upload"
                 raise VolumeError(str(err).replace(tmp, name)) from None
@@ -80,7 +93,6 @@ class VolumeStore:
                     "created": time.time(),
                 }
             )
-            del info["path"]
             os.replace(tmp, self.root / f"{vid}{ext}")
             with atomic_writer(self.root / f"{vid}.json") as f:
                 f.write(json.dumps(info).encode())
@@ -116,6 +128,47 @@ class VolumeStore:
         (self.root / f"{vid}.json").unlink(missing_ok=True)
         (self.root / f"{vid}.{info['format']}").unlink(missing_ok=True)
         return True
+
+
+#: The largest environment map taken, in pixels (a 8192 x 4096 map).
+MAX_ENVMAP_PIXELS = 8192 * 4096
+
+
+class EnvironmentStore(VolumeStore):
+    """Uploaded environment maps (lat-long OpenEXR, width twice the height): ``<root>/<id>.exr``
+    with ``<id>.json`` describing it; read with Mitsuba's own reader, the one its ``envmap``
+    and the engine use."""
+
+    WHAT = "a lat-long .exr file"
+
+    def describe(self, tmp: str) -> tuple[dict, str]:
+        with open(tmp, "rb") as f:
+            if f.read(4) != b"\x76\x2f\x31\x01":
+                raise VolumeError(f"{tmp} is not an OpenEXR file (send a lat-long .exr environment map)")
+        import mitsuba as mi
+        import numpy as np
+
+        if mi.variant() is None:
+            mi.set_variant("scalar_rgb")
+        try:
+            bitmap = mi.Bitmap(tmp)
+        except Exception as err:  # Mitsuba's reader raises RuntimeError with the file's problem
+            raise VolumeError(
+                f"{tmp} cannot be read as an OpenEXR image: {str(err).splitlines()[-1]}"
+            ) from None
+        width, height = bitmap.size()
+        if width * height > MAX_ENVMAP_PIXELS:
+            raise VolumeError(f"{tmp} has {width}x{height} pixels, over the limit of 8192x4096")
+        if width != 2 * height:
+            raise VolumeError(
+                f"{tmp} is {width}x{height}: a lat-long environment map is twice as wide as high"
+            )
+        pixels = np.array(bitmap, np.float32)
+        if not np.isfinite(pixels).all() or (pixels < 0).any():
+            raise VolumeError(
+                f"{tmp} has negative or non-finite pixels: an environment map's radiance is >= 0"
+            )
+        return {"width": int(width), "height": int(height), "channels": int(bitmap.channel_count())}, ".exr"
 
 
 def _is_hex_id(s: str) -> bool:

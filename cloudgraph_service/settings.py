@@ -98,6 +98,10 @@ class Settings(BaseSettings):
         return self.DATA_DIR / "volumes"
 
     @property
+    def environments_dir(self) -> Path:
+        return self.DATA_DIR / "environments"
+
+    @property
     def cache_dir(self) -> Path:
         return self.CACHE_DIR or self.DATA_DIR / "cache"
 

@@ -10,7 +10,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from redis import Redis
 from rq import Queue
 
-from cloudgraph.store import VolumeStore
+from cloudgraph.store import EnvironmentStore, VolumeStore
 from cloudgraph_service.settings import Settings
 
 
@@ -28,6 +28,10 @@ def get_queue(request: Request) -> Queue:
 
 def get_volumes(request: Request) -> VolumeStore:
     return request.app.state.volumes
+
+
+def get_environments(request: Request) -> EnvironmentStore:
+    return request.app.state.environments
 
 
 #: Declares the Bearer scheme in the OpenAPI document; ``main.RequireKey`` gives the 401 itself,
@@ -62,3 +66,4 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 RedisDep = Annotated[Redis, Depends(get_redis)]
 QueueDep = Annotated[Queue, Depends(get_queue)]
 VolumesDep = Annotated[VolumeStore, Depends(get_volumes)]
+EnvironmentsDep = Annotated[EnvironmentStore, Depends(get_environments)]

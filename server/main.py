@@ -20,13 +20,13 @@ from rq import Queue
 from starlette.routing import compile_path
 
 from cloudgraph.errors import CloudgraphError
-from cloudgraph.store import VolumeStore, sweep_temporaries
+from cloudgraph.store import EnvironmentStore, VolumeStore, sweep_temporaries
 from cloudgraph_service.errors import scrub, storage_message
 from cloudgraph_service.settings import Settings
 
 from .deps import CHALLENGE, UNAUTHORIZED, key_is_valid, require_key
 from .errors import BodyTooLarge, InputError, error_responses
-from .routes import animations, caches, health, jobs, renders, volumes
+from .routes import animations, caches, environments, health, jobs, renders, volumes
 
 log = logging.getLogger("cloudgraph.api")
 WEB = Path(__file__).resolve().parents[1] / "web"
@@ -92,7 +92,7 @@ class LimitBody:
         self.app, self.settings = app, settings
 
     def limit(self, scope) -> tuple[int, str]:
-        if scope["path"].rstrip("/") == "/v1/volumes":
+        if scope["path"].rstrip("/") in ("/v1/volumes", "/v1/environments"):
             mb = self.settings.MAX_UPLOAD_MB
             return mb * 2**20 + self.UPLOAD_SLACK, f"upload is over the limit of {mb} MiB"
         kb = self.settings.MAX_BODY_KB
@@ -235,9 +235,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.redis = Redis.from_url(settings.REDIS_URL, socket_timeout=10)
     app.state.queue = Queue(settings.QUEUE, connection=app.state.redis)
     app.state.volumes = VolumeStore(settings.volumes_dir)
+    app.state.environments = EnvironmentStore(settings.environments_dir)
     app.state.upload_slots = asyncio.Semaphore(2)  # volume checks at once (each a child process)
-    for p in sweep_temporaries(settings.volumes_dir):  # uploads of an API process that died
-        log.info("removed %s, left by an upload whose API process died", p.name)
+    for folder in (settings.volumes_dir, settings.environments_dir):
+        for p in sweep_temporaries(folder):  # uploads of an API process that died
+            log.info("removed %s, left by an upload whose API process died", p.name)
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(request: Request, err: RequestValidationError):
@@ -287,7 +289,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_middleware(CountRequests)
 
     v1 = APIRouter(prefix="/v1", dependencies=[Depends(require_key)], responses=error_responses(401))
-    for r in (volumes, caches, renders, animations, jobs):
+    for r in (volumes, environments, caches, renders, animations, jobs):
         v1.include_router(r.router)
     app.include_router(v1)
     app.include_router(health.router)

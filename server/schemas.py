@@ -8,7 +8,16 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from cloudgraph.options import ESTIMATORS, INTEGRATORS, PHASE_ESTIMATORS, QUALITIES
-from cloudgraph.scene import MAX_LIGHTS, CameraSpec, Light, LightSpec, MediumSpec, Scene, VolumeSpec
+from cloudgraph.scene import (
+    MAX_LIGHTS,
+    CameraSpec,
+    Light,
+    LightSpec,
+    MediumSpec,
+    Scene,
+    VolumeSpec,
+    check_light_list,
+)
 
 from .validation import first_non_finite
 
@@ -60,6 +69,11 @@ class CacheCreate(_Body):
     max_depth: int = Field(-1, ge=-1)
     quality: Quality = "default"
 
+    @model_validator(mode="before")
+    @classmethod
+    def _light_list(cls, data):
+        return check_light_list(data)
+
     @model_validator(mode="after")
     def _one_light_field(self) -> CacheCreate:
         if self.lights is not None and "light" in self.model_fields_set:
@@ -75,6 +89,8 @@ class CacheCreate(_Body):
         for kind, li in zip(kinds, self.lights, strict=True):
             if li.type == "directional":
                 kind["direction"] = list(li.unit_direction())
+            if li.type == "envmap":  # an uploaded map's id: the sha256 of its bytes
+                kind["id"] = li.id
         return {"lights": kinds}
 
     def light_part(self) -> dict:
@@ -181,6 +197,19 @@ class VolumePublic(BaseModel):
     voxel_size: list[float]
     value_range: list[float] = Field(description="[min, max] of the density grid")
     active_fraction: float = Field(description="fraction of the bounding box's voxels above 0")
+
+
+class EnvironmentPublic(BaseModel):
+    """An uploaded environment map (lat-long OpenEXR); its id is the sha256 of the file's bytes."""
+
+    id: str = Field(pattern="^[0-9a-f]{64}$")
+    filename: str
+    bytes: int
+    format: Literal["exr"]
+    created: float = Field(description="upload time, seconds since the epoch")
+    width: int = Field(description="pixels; twice the height (lat-long)")
+    height: int
+    channels: int
 
 
 class CachePublic(BaseModel):

@@ -13,7 +13,7 @@ import math
 from fastapi import HTTPException
 
 from cloudgraph.scene import CameraSpec, EnvmapSpec, LightSpec, MediumSpec, Scene, SkySpec, VolumeSpec
-from cloudgraph.store import VolumeStore
+from cloudgraph.store import EnvironmentStore, VolumeStore
 from cloudgraph_service.errors import shown
 from cloudgraph_service.settings import Settings
 
@@ -70,13 +70,20 @@ def check_camera(camera: CameraSpec, settings: Settings, where: str) -> None:
         )
 
 
-def check_light(light: LightSpec | SkySpec | EnvmapSpec, where: str) -> None:
+def check_light(light: LightSpec | SkySpec | EnvmapSpec, where: str, settings: Settings) -> None:
     if light.type == "envmap":
-        raise InputError(
-            where,
-            "environment maps are not taken over HTTP yet (there is no upload of them); render "
-            "an envmap scene with the CLI, or use a 'sky' light",
-        )
+        if light.id is None:
+            raise InputError(
+                f"{where}.path",
+                "the HTTP API takes an uploaded environment map's 'id' (POST /v1/environments)",
+            )
+        if EnvironmentStore(settings.environments_dir).info(light.id) is None:
+            raise HTTPException(
+                404,
+                f"{where}.id: no environment map with id {shown(light.id)}; "
+                "upload it with POST /v1/environments",
+            )
+        return
     if light.type == "sky":
         if max(light.intensity_rgb()) > MAX_IRRADIANCE:
             raise InputError(f"{where}.radiance", f"must be at most {MAX_IRRADIANCE:g}")
@@ -86,12 +93,12 @@ def check_light(light: LightSpec | SkySpec | EnvmapSpec, where: str) -> None:
         raise InputError(f"{where}.irradiance", f"must be at most {MAX_IRRADIANCE:g}")
 
 
-def check_lights(light: LightSpec, lights, where: str) -> None:
+def check_lights(light: LightSpec, lights, where: str, settings: Settings) -> None:
     """The one ``light`` (``where`` + light) or each of v1.1's ``lights`` (``where`` + lights.i)."""
     if lights is None:
-        check_light(light, f"{where}light")
+        check_light(light, f"{where}light", settings)
     for i, one in enumerate(lights or ()):
-        check_light(one, f"{where}lights.{i}")
+        check_light(one, f"{where}lights.{i}", settings)
 
 
 def grid_of(spec: VolumeSpec, volumes: VolumeStore, where: str) -> dict:
@@ -164,7 +171,7 @@ def check_cache_parts(
     """What a radiance cache depends on, with field names under ``prefix``."""
     grid = grid_of(volume, volumes, f"{prefix}volume")
     check_medium(medium, grid, volume.scale, settings, f"{prefix}medium")
-    check_lights(light, lights, prefix)
+    check_lights(light, lights, prefix, settings)
     check_depth(max_depth, settings, f"{prefix}render.max_depth" if prefix else "max_depth")
 
 

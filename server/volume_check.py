@@ -1,5 +1,6 @@
-"""``python -m server.volume_check FILE NAME [API_PID]``: reads an upload in a child process of the
-API, and dies with it (an upload whose API died is not stored).
+"""``python -m server.volume_check FILE NAME [API_PID [KIND]]``: reads an upload in a child process
+of the API, and dies with it (an upload whose API died is not stored). KIND is ``volume`` (the
+default) or ``environment`` (a lat-long .exr map, read by Mitsuba: cloudgraph.store).
 
 A volume file is small and sparse, but densified it can be huge, and a corrupt one can crash
 the OpenVDB reader: both happen here, never in the API process. The process runs under a memory
@@ -73,20 +74,21 @@ def grid_stats(path: Path, name: str, max_voxels: int) -> dict[str, dict]:
     return out
 
 
-def check(path: Path, name: str, settings: Settings, tag: str = "") -> dict:
+def check(path: Path, name: str, settings: Settings, tag: str = "", kind: str = "volume") -> dict:
     """Checks and stores one upload; the JSON answer for the API. ``tag``: the API process's
     writer tag, which the store's temporary copy carries (cloudgraph.store.sweep_temporaries)."""
     from cloudgraph.errors import VolumeError
-    from cloudgraph.store import VolumeStore
+    from cloudgraph.store import EnvironmentStore, VolumeStore
 
-    store = VolumeStore(settings.volumes_dir)
+    volume = kind == "volume"
+    store = VolumeStore(settings.volumes_dir) if volume else EnvironmentStore(settings.environments_dir)
     try:
         with open(path, "rb") as f:
             is_vdb = f.read(3) != b"VOL"
-        stats = grid_stats(path, name, settings.MAX_VOXELS) if is_vdb else {}
+        stats = grid_stats(path, name, settings.MAX_VOXELS) if volume and is_vdb else {}
         with open(path, "rb") as f:
             info, created = store.put(f, settings.MAX_UPLOAD_MB * 2**20, name, tag)
-        if created:
+        if created and volume:
             for g in info["grids"]:
                 g.update(stats.get(g["name"], {}))
             if not stats:  # a .vol: its one grid is the density
@@ -98,7 +100,7 @@ def check(path: Path, name: str, settings: Settings, tag: str = "") -> dict:
     except MemoryError:
         return {"error": f"{name} needs more memory to read than the service allows", "status": 422}
     except OSError as err:
-        message = storage_message(err, {"uploads": settings.volumes_dir})
+        message = storage_message(err, {"uploads": store.root})
         if message is None:
             raise
         return {"error": message, "status": 507}
@@ -126,7 +128,8 @@ def main() -> None:
     from cloudgraph.store import writer_tag
 
     tag = writer_tag(parent) if parent else ""
-    print(json.dumps(check(Path(sys.argv[1]), sys.argv[2], settings, tag)))
+    kind = sys.argv[4] if len(sys.argv) > 4 else "volume"
+    print(json.dumps(check(Path(sys.argv[1]), sys.argv[2], settings, tag, kind)))
 
 
 if __name__ == "__main__":

@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 from rq import get_current_job
 
+from cloudgraph.errors import SceneError
 from cloudgraph.files import write_atomic
 from cloudgraph.image import png_bytes, write_exr
 from cloudgraph.lights import Lights
@@ -118,6 +119,33 @@ def _checked_store(caches, graph_key: str):
     return CheckedStore(caches.root)
 
 
+def with_environment_files(scene, environments_dir):
+    """The scene with each uploaded environment map's id (an ``envmap`` light's) as the path of
+    its stored file, which the engine reads (the API checked that it exists)."""
+    if scene.lights is None or not any(li.type == "envmap" for li in scene.lights):
+        return scene
+    from cloudgraph.store import EnvironmentStore
+
+    store = EnvironmentStore(environments_dir)
+
+    def resolved(li):
+        if li.type != "envmap" or li.id is None:
+            return li
+        path = store.path(li.id)
+        if path is None:
+            raise SceneError(
+                f"no environment map with id {li.id[:12]}...; upload it with POST /v1/environments"
+            )
+        return li.model_copy(update={"id": None, "path": str(path)})
+
+    return scene.model_copy(update={"lights": tuple(resolved(li) for li in scene.lights)})
+
+
+def _parsed(doc: dict):
+    """A job's scene, parsed, with its uploaded environment maps as files."""
+    return with_environment_files(parse_scene(doc), state().settings.environments_dir)
+
+
 def _cache(scene, volume, quality: str):
     """(keys, build) of the scene's radiance cache: its keys, worked out once per job (a pass
     over the volume), and ``build(progress)``, which finds or makes the cache under those keys,
@@ -187,7 +215,7 @@ def precompute_job(payload: dict) -> dict:
     """Builds (or finds) the radiance cache of a scene (PrecomputeJob); returns its keys and
     stats."""
     p = PrecomputeJob.received(payload)
-    sc = parse_scene(p.scene)
+    sc = _parsed(p.scene)
     _, build = _cache(sc, state().volume(sc), p.quality)
     cache = build(report)
     return {"keys": cache.keys, "stats": cache.stats}
@@ -214,7 +242,7 @@ def render_image(scene, volume, renderer=None, estimator: str = "gather") -> tup
 def render_job(payload: dict) -> dict:
     """Renders one image to the payload's ``out``, png or exr (RenderJob)."""
     p = RenderJob.received(payload)
-    sc = parse_scene(p.scene)
+    sc = _parsed(p.scene)
     volume = state().volume(sc)
     renderer = _renderer_for(p.integrator, sc, volume, p.quality, p.radiance_key)
     image, seconds = render_image(sc, volume, renderer, p.estimator)
@@ -235,12 +263,12 @@ def frames_job(payload: dict) -> dict:
     """Renders a run of animation frames (``FRAME_FILE``; FramesJob): the scene from each of the
     payload's cameras in turn, one Python call per frame, all with one renderer."""
     p = FramesJob.received(payload)
-    base = parse_scene(p.scene)
+    base = _parsed(p.scene)
     volume = state().volume(base)
     renderer = _renderer_for(p.integrator, base, volume, p.quality, p.radiance_key)
     out = Path(p.out_dir)
     for i, camera in enumerate(p.cameras):  # a loop over frames, each a whole vectorised render
-        image, _ = render_image(parse_scene({**p.scene, "camera": camera}), volume, renderer, p.estimator)
+        image, _ = render_image(_parsed({**p.scene, "camera": camera}), volume, renderer, p.estimator)
         stop_if_cancelled()
         write_atomic(out / FRAME_FILE.format(p.first + i), png_bytes(image, p.exposure))
         report("frames", (i + 1) / len(p.cameras))

@@ -155,8 +155,7 @@ def test_a_scene_of_lights_renders_and_new_intensities_are_the_same_cache(client
         ([{"type": "sun"}], "lights.0.type must be one of directional, sky, envmap, got 'sun'"),
         ([{"type": "sky", "radiance": 2e6}], "scene.lights.0.radiance: must be at most"),
         ([{"type": "directional", "direction": [0, 2e6, 0]}], "scene.lights.0.direction"),
-        ([{"type": "envmap", "id": "a" * 64}], "scene.lights.0: environment maps are not taken over HTTP"),
-        ([{"type": "envmap", "path": "/etc/passwd"}], "scene.lights.0: environment maps are not taken"),
+        ([{"type": "envmap", "path": "/etc/passwd"}], "scene.lights.0.path: the HTTP API takes an uploaded"),
     ],
 )
 def test_bad_lights_get_a_422_naming_the_light(client, fog, lights, words):
