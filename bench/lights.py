@@ -14,6 +14,7 @@ field frame). Rows are printed and written as they finish (bench/results/lights-
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from pathlib import Path
@@ -40,7 +41,25 @@ SETUPS = {
         {"type": "directional", "direction": LIGHT.tolist(), "irradiance": 1.0},
         {"type": "directional", "direction": RELIGHT.tolist(), "irradiance": [0.6, 0.5, 0.4]},
     ],
+    # ENVMAP: written by run(), a lat-long gradient (bright and white at +y, dim and blue below)
+    "sun+envmap": [
+        {"type": "directional", "direction": LIGHT.tolist(), "irradiance": 1.0},
+        {"type": "envmap", "path": "ENVMAP", "scale": 0.5},
+    ],
 }
+
+
+def write_envmap(path: Path) -> str:
+    """The sun+envmap setup's map: 128 x 64, radiance 2 at the top row to 0.2 at the bottom,
+    bluer downwards."""
+    from cloudgraph.image import write_exr
+
+    h, w = 64, 128
+    ramp = np.linspace(2.0, 0.2, h, dtype=np.float32)[:, None, None]
+    tint = np.array([1.0, 0.9, 0.8], np.float32) ** np.linspace(0, 3, h, dtype=np.float32)[:, None, None]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_exr(np.ascontiguousarray(np.broadcast_to(ramp * tint, (h, w, 3)), np.float32), path)
+    return str(path)
 COLUMNS = [
     "scene",
     "lights",
@@ -61,9 +80,10 @@ COLUMNS = [
 ]
 
 
-def with_lights(scene, lights):
+def with_lights(scene, lights, envmap: str = ""):
     d = scene.model_dump(mode="json")
     d.pop("light", None)
+    lights = [{**li, "path": envmap} if li.get("path") == "ENVMAP" else li for li in lights]
     return parse_scene({**d, "lights": lights})
 
 
@@ -83,6 +103,7 @@ def run(scenes, albedos, setups, ref_spp: int, gather_spp: int, size: int, quali
     store = CacheStore(out_dir.parent / "cache-lights")
     ref_dir = out_dir.parent / "reference-cache"
     stem = out_dir / f"lights-{time.strftime('%Y%m%d-%H%M%S')}"
+    envmap = write_envmap(out_dir.parent / "cache-lights" / "gradient.exr")
     rows = []
     for bs in bench_scenes(scenes):
         for albedo in albedos:
@@ -91,12 +112,12 @@ def run(scenes, albedos, setups, ref_spp: int, gather_spp: int, size: int, quali
             precompute(base, bs.volume, quality, store)  # the sun alone: the graph, first made
             pre = time.perf_counter() - t0
             for setup in setups:
-                lit = with_lights(base, SETUPS[setup])
+                lit = with_lights(base, SETUPS[setup], envmap)
                 t0 = time.perf_counter()
                 cache = precompute(lit, bs.volume, quality, store)  # a relight: the graph reused
                 relight = time.perf_counter() - t0
                 for cam_name, camera in cameras(bs.volume, LIGHT, size).items():
-                    scene = with_lights(_scene(bs, camera, albedo, gather_spp, seed=0), SETUPS[setup])
+                    scene = with_lights(_scene(bs, camera, albedo, gather_spp, seed=0), SETUPS[setup], envmap)
                     ref = reference(bs, scene, ref_spp, ref_dir)
                     lights = Lights.of(scene)
                     mask = cloud_bins(ref, lights.sky_radiance)
@@ -111,7 +132,7 @@ def run(scenes, albedos, setups, ref_spp: int, gather_spp: int, size: int, quali
                         row[f"{name}_cloud_pct"] = cloud_pct(image, ref, mask)
                     row["field_vs_gather_pct"] = 100 * bias_metrics(field, gather)["binned_relMAE"]
                     # a re-mix: other intensities of the same lights, one 16-spp field frame
-                    dimmer = Lights(lights.directions, lights.sky, 0.5 * lights.intensity, True)
+                    dimmer = dataclasses.replace(lights, intensity=0.5 * lights.intensity)
                     r.render(scene.camera, 16, 1, "field", dimmer)  # (kernels warm)
                     t0 = time.perf_counter()
                     r.render(scene.camera, 16, 1, "field", lights)
@@ -133,15 +154,18 @@ def _write(stem: Path, rows, ref_spp, gather_spp, size, quality) -> None:
     result = {"machine": m, "quality": quality, "size": size, "gather_spp": gather_spp, "ref_spp": ref_spp}
     stem.parent.mkdir(parents=True, exist_ok=True)
     stem.with_suffix(".json").write_text(json.dumps({**result, "rows": rows}, indent=2))
-    text = (
-        f"# Several lights (bench/lights.py)\n\nMachine: {m['cpu']}, {m['cores']} cores; variant "
-        f"{m['variant']}; quality {quality}; {size}x{size}; gather {gather_spp} spp, field 16 spp; reference "
-        f"volpath with Mitsuba's directional and constant emitters, {ref_spp} spp, RR off. *_mean: image "
-        f"mean / reference's; *_binned_pct: 4x4-binned relMAE (%) over the image, *_cloud_pct over the bins "
-        f"where the cloud shows (reference over 2 % from the bare sky); pre_s: the first precompute (graph "
-        f"and the sun alone); relight_s: the setup's precompute on that graph; remix_ms: new intensities "
-        f"and a 16-spp field frame.\n\n" + table(rows, COLUMNS)
+    about = " ".join(
+        [
+            f"Machine: {m['cpu']}, {m['cores']} cores; variant {m['variant']}; quality {quality};",
+            f"{size}x{size}; gather {gather_spp} spp, field 16 spp; reference volpath with Mitsuba's",
+            f"directional, constant and envmap emitters, {ref_spp} spp, RR off. *_mean: image mean /",
+            "reference's; *_binned_pct: 4x4-binned relMAE (%) over the image, *_cloud_pct over the bins",
+            "where the cloud shows (reference over 2 % from the bare sky; sun+envmap: every bin); pre_s:",
+            "the first precompute (graph and the sun alone); relight_s: the setup's precompute on that",
+            "graph; remix_ms: new intensities and a 16-spp field frame.",
+        ]
     )
+    text = f"# Several lights (bench/lights.py)\n\n{about}\n\n" + table(rows, COLUMNS)
     stem.with_suffix(".md").write_text(text)
 
 
