@@ -268,9 +268,12 @@ LIGHT_TYPES = {"directional": LightSpec, "sky": SkySpec, "envmap": EnvmapSpec}
 
 def check_light_list(data):
     """A model's input ``data`` whose ``lights`` is checked light by light, each error named
-    lights.<i>.<field> (a tagged union's errors would name the tag and every member)."""
+    lights.<i>.<field> (a tagged union's errors would name the tag and every member), and never
+    given with ``light``."""
     if not isinstance(data, dict) or data.get("lights") is None:
         return data
+    if "light" in data:
+        raise ValueError("give 'light' (one directional light) or 'lights' (a list), not both")
     lights = data["lights"]
     if not isinstance(lights, list | tuple) or not 1 <= len(lights) <= MAX_LIGHTS:
         raise ValueError(f"lights must be a list of 1 to {MAX_LIGHTS} lights, got {_brief(lights)}")
@@ -349,12 +352,6 @@ class Scene(_Model):
     @classmethod
     def _light_list(cls, data):
         return check_light_list(data)
-
-    @model_validator(mode="after")
-    def _one_light_field(self) -> Scene:
-        if self.lights is not None and "light" in self.model_fields_set:
-            raise ValueError("give 'light' (one directional light) or 'lights' (a list), not both")
-        return self
 
     @model_serializer(mode="wrap")
     def _dump(self, handler):

@@ -74,12 +74,6 @@ class CacheCreate(_Body):
     def _light_list(cls, data):
         return check_light_list(data)
 
-    @model_validator(mode="after")
-    def _one_light_field(self) -> CacheCreate:
-        if self.lights is not None and "light" in self.model_fields_set:
-            raise ValueError("give 'light' (one directional light) or 'lights' (a list), not both")
-        return self
-
     def light_id(self) -> dict:
         """What the cache's id holds of its light: the v1 light, or the v1.1 lights' kinds and
         directions (intensities are mixed at render time: lights.py)."""
