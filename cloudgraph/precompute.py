@@ -147,6 +147,11 @@ def precompute(
     isotropic = scene.medium.phase.isotropic
     graph_density, graph_albedo = scene.medium.graph_medium()
     field_builder, field_chunks = None, chunks if isotropic else local_chunks
+    # An environment map is a file of this machine's: the chunks that read it (the lighting and
+    # the bake) run here too (a cluster's workers have no data volume: compose.yaml)
+    light_chunks = local_chunks if lights.envmaps else chunks
+    if lights.envmaps:
+        field_chunks = local_chunks
 
     found = read_radiance(store.radiance_path(rkey))
     found_field = store.load_field(rkey)
@@ -165,7 +170,7 @@ def precompute(
         # finished and written
         nonlocal lit, t_light
         t_light = time.perf_counter()
-        lit = chunks(builder, "lighting", lighting_inputs(positions, lights, params))
+        lit = light_chunks(builder, "lighting", lighting_inputs(positions, lights, params))
 
     if found is None or found_field is None:  # the graph is needed: read it, or build it
         builder = GraphBuilder(volume, graph_density, params)
