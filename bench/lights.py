@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import time
 from pathlib import Path
 
@@ -29,7 +28,7 @@ from cloudgraph.render import GraphRenderer
 from cloudgraph.scene import parse_scene
 
 from .harness import LIGHT, RELIGHT, _scene, bench_scenes, cameras, reference
-from .report import add_accuracy_args, machine, row_md, table
+from .report import add_accuracy_args, row_md, write_accuracy_rows
 
 SKY = [0.25, 0.35, 0.55]
 SETUPS = {
@@ -60,6 +59,8 @@ def write_envmap(path: Path) -> str:
     path.parent.mkdir(parents=True, exist_ok=True)
     write_exr(np.ascontiguousarray(np.broadcast_to(ramp * tint, (h, w, 3)), np.float32), path)
     return str(path)
+
+
 COLUMNS = [
     "scene",
     "lights",
@@ -150,23 +151,15 @@ def run(scenes, albedos, setups, ref_spp: int, gather_spp: int, size: int, quali
 
 
 def _write(stem: Path, rows, ref_spp, gather_spp, size, quality) -> None:
-    m = machine()
-    result = {"machine": m, "quality": quality, "size": size, "gather_spp": gather_spp, "ref_spp": ref_spp}
-    stem.parent.mkdir(parents=True, exist_ok=True)
-    stem.with_suffix(".json").write_text(json.dumps({**result, "rows": rows}, indent=2))
-    about = " ".join(
-        [
-            f"Machine: {m['cpu']}, {m['cores']} cores; variant {m['variant']}; quality {quality};",
-            f"{size}x{size}; gather {gather_spp} spp, field 16 spp; reference volpath with Mitsuba's",
-            f"directional, constant and envmap emitters, {ref_spp} spp, RR off. *_mean: image mean /",
-            "reference's; *_binned_pct: 4x4-binned relMAE (%) over the image, *_cloud_pct over the bins",
-            "where the cloud shows (reference over 2 % from the bare sky; sun+envmap: every bin); pre_s:",
-            "the first precompute (graph and the sun alone); relight_s: the setup's precompute on that",
-            "graph; remix_ms: new intensities and a 16-spp field frame.",
-        ]
+    legend = (
+        "*_mean: image mean / reference's; *_binned_pct: 4x4-binned relMAE (%) over the image, *_cloud_pct "
+        "over the bins where the cloud shows (reference over 2 % from the bare sky; sun+envmap: every bin); "
+        "pre_s: the first precompute (graph and the sun alone); relight_s: the setup's precompute on that "
+        "graph; remix_ms: new intensities and a 16-spp field frame."
     )
-    text = f"# Several lights (bench/lights.py)\n\n{about}\n\n" + table(rows, COLUMNS)
-    stem.with_suffix(".md").write_text(text)
+    reference = "Mitsuba's directional, constant and envmap emitters"
+    settings = {"quality": quality, "size": size, "gather_spp": gather_spp, "ref_spp": ref_spp}
+    write_accuracy_rows(stem, "Several lights (bench/lights.py)", reference, legend, rows, COLUMNS, settings)
 
 
 def main(argv=None) -> None:

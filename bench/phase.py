@@ -21,7 +21,6 @@ they finish (bench/results/phase-<date>.json and .md), so a cut run keeps what i
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
@@ -34,7 +33,7 @@ from cloudgraph.render import GraphRenderer, render_volpath
 from cloudgraph.scene import PhaseSpec
 
 from .harness import LIGHT, _scene, bench_scenes, cameras, reference
-from .report import add_accuracy_args, machine, row_md, table
+from .report import add_accuracy_args, row_md, write_accuracy_rows
 
 COLUMNS = [
     "scene",
@@ -152,27 +151,14 @@ def run(scenes, gs, albedos, ref_spp: int, gather_spp: int, size: int, quality: 
 
 
 def _write(stem: Path, rows, ref_spp, gather_spp, size, quality) -> None:
-    m = machine()
-    result = {
-        "machine": m,
-        "quality": quality,
-        "size": size,
-        "gather_spp": gather_spp,
-        "ref_spp": ref_spp,
-        "rows": rows,
-    }
-    stem.parent.mkdir(parents=True, exist_ok=True)
-    stem.with_suffix(".json").write_text(json.dumps(result, indent=2))
-    text = (
-        f"# Forward scattering (bench/phase.py)\n\nMachine: {m['cpu']}, {m['cores']} cores; variant "
-        f"{m['variant']}; quality {quality}; {size}x{size}; gather {gather_spp} spp, field 16 spp; reference "
-        f"volpath with hg, {ref_spp} spp, RR off. *_mean: image mean / reference's; *_binned_pct: 4x4-binned "
-        f"relMAE (%); K: gather's exact scattering events for simK and isoK; field_vs_gather_pct: field "
-        f"against simK; gather_noise_pct, ref_noise_pct: simK's and the reference's own binned noise; "
-        f"pre_*_s: precompute seconds "
-        f"(reused graphs count 0).\n\n" + table(rows, COLUMNS)
+    legend = (
+        "*_mean: image mean / reference's; *_binned_pct: 4x4-binned relMAE (%); K: gather's exact "
+        "scattering events for simK and isoK; field_vs_gather_pct: field against simK; gather_noise_pct, "
+        "ref_noise_pct: simK's and the reference's own binned noise; pre_*_s: precompute seconds (reused "
+        "graphs count 0)."
     )
-    stem.with_suffix(".md").write_text(text)
+    settings = {"quality": quality, "size": size, "gather_spp": gather_spp, "ref_spp": ref_spp}
+    write_accuracy_rows(stem, "Forward scattering (bench/phase.py)", "hg", legend, rows, COLUMNS, settings)
 
 
 def main(argv=None) -> None:

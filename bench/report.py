@@ -141,3 +141,22 @@ def add_accuracy_args(p, scenes=None) -> None:
     p.add_argument("--size", type=int, default=64)
     p.add_argument("--quality", default="default")
     p.add_argument("--out", default="bench/results")
+
+
+def write_accuracy_rows(
+    stem: Path, title: str, reference: str, legend: str, rows, columns, settings: dict
+) -> None:
+    """An accuracy bench's rows so far (phase.py, lights.py): ``stem``.json (the machine,
+    ``settings``: quality, size, gather_spp, ref_spp; the rows) and ``stem``.md (``title``, the
+    machine and settings with ``reference``, what volpath renders with, ``legend`` and the
+    table), written again after each row, so that a cut run keeps what it measured."""
+    m = machine()
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    stem.with_suffix(".json").write_text(json.dumps({"machine": m, **settings, "rows": rows}, indent=2))
+    size = settings["size"]
+    about = (
+        f"Machine: {m['cpu']}, {m['cores']} cores; variant {m['variant']}; quality {settings['quality']}; "
+        f"{size}x{size}; gather {settings['gather_spp']} spp, field 16 spp; reference volpath with "
+        f"{reference}, {settings['ref_spp']} spp, RR off. {legend}"
+    )
+    stem.with_suffix(".md").write_text(f"# {title}\n\n{about}\n\n" + table(rows, columns))
