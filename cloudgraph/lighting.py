@@ -84,11 +84,9 @@ def envmap_radiance(
     n = len(positions)
     if n == 0:
         return np.zeros((0, 3))
-    m, lane = n * samples, first * samples
-    rng = jit_rng(m, seed + lane, lane)
-    node = dr.arange(mi.UInt32, m) // samples
-    it = dr.zeros(mi.Interaction3f, m)
-    it.p = dr.gather(mi.Point3f, to_jit(mi.Point3f, positions), node)
+    rng, o = _node_lanes(positions, samples, seed, first)
+    it = dr.zeros(mi.Interaction3f, n * samples)
+    it.p = o
     ds, weight = emitter.sample_direction(it, mi.Point2f(rng.next_float32(), rng.next_float32()))
     Tr = ratio_tracking(field, it.p, ds.d, rng, mi.Bool(True))
     L = mi.Color3f(weight) * Tr
@@ -98,14 +96,19 @@ def envmap_radiance(
 
 def _mean_transmittance(field, positions, direction, samples: int, seed: int, first: int) -> np.ndarray:
     """(N,) mean of ``samples`` ratio-tracking estimates of T_r per node, along ``direction(rng)``."""
-    n = len(positions)
-    m, lane = n * samples, first * samples
-    rng = jit_rng(m, seed + lane, lane)  # lane j: first * samples + j added to both
-    node = dr.arange(mi.UInt32, m) // samples
-    o = dr.gather(mi.Point3f, to_jit(mi.Point3f, positions), node)
+    rng, o = _node_lanes(positions, samples, seed, first)
     Tr = ratio_tracking(field, o, direction(rng), rng, mi.Bool(True))
     # Mean over each node's estimates (in numpy: a fixed summation order on every backend)
-    return np.array(Tr, np.float64).reshape(n, samples).mean(axis=1)
+    return np.array(Tr, np.float64).reshape(len(positions), samples).mean(axis=1)
+
+
+def _node_lanes(positions: np.ndarray, samples: int, seed: int, first: int):
+    """(rng, origins) of ``samples`` lanes per node: lane j of the chunk from node ``first`` on
+    adds first * samples + j to both seeds, so a node's estimates are the same in any chunk."""
+    m, lane = len(positions) * samples, first * samples
+    rng = jit_rng(m, seed + lane, lane)
+    node = dr.arange(mi.UInt32, m) // samples
+    return rng, dr.gather(mi.Point3f, to_jit(mi.Point3f, positions), node)
 
 
 def lighting_chunk(field: DensityField, index: int, inputs: dict) -> tuple[np.ndarray, np.ndarray]:
