@@ -61,6 +61,9 @@ COLUMNS = [
     "pre_iso_s",
     "graph_MB_sim",
     "graph_MB_iso",
+    "field_MB_sim",
+    "field_MB_iso",
+    "field_bake_s",
     "gather_s",
 ]
 
@@ -83,8 +86,10 @@ def own_noise(bs, scene, ref: np.ndarray, spp: int) -> float:
     )
 
 
-def run(scenes, gs, albedos, ref_spp: int, gather_spp: int, size: int, quality: str, out_dir: Path):
-    from cloudgraph.integrators.graph import phase_bounces
+def run(
+    scenes, gs, albedos, ref_spp: int, gather_spp: int, size: int, quality: str, out_dir: Path, approaches=None
+):
+    from cloudgraph.phase import phase_bounces
 
     store = CacheStore(out_dir.parent / "cache")
     ref_dir = out_dir.parent / "reference-cache"
@@ -96,6 +101,7 @@ def run(scenes, gs, albedos, ref_spp: int, gather_spp: int, size: int, quality: 
             t0 = time.perf_counter()
             iso_cache = precompute(iso_scene, bs.volume, quality, store)
             pre_iso = time.perf_counter() - t0
+            iso_field_bytes = iso_cache.stats["field_bytes"]
             for g in gs:
                 phase = PhaseSpec(type="hg", g=g)
                 K = phase_bounces(phase)
@@ -115,6 +121,8 @@ def run(scenes, gs, albedos, ref_spp: int, gather_spp: int, size: int, quality: 
                         ("isoK", iso, K),
                         ("iso1", iso, 1),
                     ):
+                        if approaches and name not in approaches:
+                            continue
                         renderer.integrator("gather").bounces = bounces
                         t0 = time.perf_counter()
                         images[name] = renderer.render(scene.camera, gather_spp, 1, "gather")
@@ -143,6 +151,9 @@ def run(scenes, gs, albedos, ref_spp: int, gather_spp: int, size: int, quality: 
                         pre_iso_s=round(pre_iso, 2),
                         graph_MB_sim=round(sim_cache.stats["graph_bytes"] / 2**20, 2),
                         graph_MB_iso=round(iso_cache.stats["graph_bytes"] / 2**20, 2),
+                        field_MB_sim=round(sim_cache.stats["field_bytes"] / 2**20, 2),
+                        field_MB_iso=round(iso_field_bytes / 2**20, 2),
+                        field_bake_s=sim_cache.stats.get("field_s"),
                     )
                     rows.append(row)
                     print(row_md(row, COLUMNS), flush=True)
@@ -167,9 +178,12 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_accuracy_args(p)
     p.add_argument("--g", nargs="*", type=float, default=[0.5, 0.85])
+    p.add_argument(
+        "--approaches", nargs="*", choices=["sim1", "simK", "isoK", "iso1"], help="gather's approaches to run (all)"
+    )
     a = p.parse_args(argv)
     set_variant()
-    run(a.scenes, a.g, a.albedo, a.ref_spp, a.gather_spp, a.size, a.quality, Path(a.out))
+    run(a.scenes, a.g, a.albedo, a.ref_spp, a.gather_spp, a.size, a.quality, Path(a.out), a.approaches)
 
 
 if __name__ == "__main__":

@@ -17,6 +17,10 @@ dilated by one voxel: empty-space skipping). What the arrays hold: field.py. A f
 ``direction`` and ``tau`` array (directional) and its ``ms`` array, at unit intensity; the
 first component's are ``tau_light`` and ``radiance_ms``, the others' ``tau_light_K`` and
 ``radiance_ms_K`` after ``majorant`` (``tau_light`` is zero without a directional light).
+A field of an anisotropic phase also holds, per directional light, ``ms_shape`` (header
+``ms_shape``, or the component's ``shape``: ``ms_shape_K``): (mz, my, mx, 8) Legendre
+moments c_1..c_8 of its L_ms about the light at unit intensity, whose sum with
+``radiance_ms`` is L_ms seen along a ray (field.py, ``_walk_ms``).
 """
 
 from __future__ import annotations
@@ -130,8 +134,8 @@ def pack_array(name: str, a: np.ndarray) -> tuple[dict, bytes, bytes]:
     """One array of a field file: (header entry without its offset, float16 bytes padded to 16,
     the same deflated)."""
     a = np.asarray(a, np.float32)
-    rgb = name.startswith("radiance_ms")
-    peak = a.reshape(-1, a.shape[-1]).max(axis=0) if rgb else a.max(initial=0.0)
+    rgb = name.startswith(("radiance_ms", "ms_shape"))  # a scale per channel
+    peak = np.abs(a).reshape(-1, a.shape[-1]).max(axis=0) if rgb else np.abs(a).max(initial=0.0)
     scale = np.where(np.asarray(peak) > 0, peak, 1.0)
     raw = np.ascontiguousarray(a / scale, "<f2").tobytes()
     raw += b"\0" * (-len(raw) % 16)

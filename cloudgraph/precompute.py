@@ -263,6 +263,8 @@ def precompute(
             marched,
             next(iter(bins)),
             lambda stage, f: progress(stage, 0.95 + 0.05 * f),
+            phase=scene.medium.phase,
+            max_depth=scene.render.max_depth,
         )
         if not isotropic:  # the page's march applies it to single scattering (api.md)
             field.meta["phase"] = scene.medium.phase.model_dump()

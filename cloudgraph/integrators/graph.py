@@ -57,6 +57,7 @@ import numpy as np
 from ..errors import SceneError
 from ..mitsuba_scene import envmap_emitter
 from ..options import ESTIMATORS, PHASE_ESTIMATORS
+from ..phase import hg_phase, phase_bounces, phase_walk, shape_basis
 from ..spatial import NodeGrid
 from ..tracing import (
     BLOCK,
@@ -85,7 +86,9 @@ class FieldTextures:
     Attributes:
         tau: optical depth to each directional light, 1 channel each (a list, in the lights'
             order); ms: radiance after the first scattering, 3 channels (the light components
-            mixed: :meth:`mixed_ms`); all trilinear, clamped, over the unit cube.
+            mixed: :meth:`mixed_ms`); shape: per directional light, how its L_ms depends on
+            the view (an anisotropic phase; None without: phase.shape_basis), frame: the basis's
+            frame (3, 3); all trilinear, clamped, over the unit cube.
         step: march step, world units; max_dtau: a step's optical depth at most (at its block's
             majorant); edge: within this of where the light enters the box, single scattering
             integrates sigma_t to it (world units; field.py's header, read by the page too).
@@ -94,6 +97,8 @@ class FieldTextures:
 
     tau: object
     ms: object
+    shape: tuple
+    frame: tuple
     step: float
     max_dtau: float
     edge: float
@@ -110,11 +115,10 @@ class FieldTextures:
     @classmethod
     def from_field(cls, field, lights) -> FieldTextures:
         step, max_dtau = float(field.meta["step"]), float(field.meta["max_dtau"])
-        taus = (
-            [field.array(c["tau"]) for c in field.meta["lights"] if "tau" in c]
-            if "lights" in field.meta
-            else [field.tau_light]
-        )
+        suns = [c for c in field.meta["lights"] if "tau" in c] if "lights" in field.meta else None
+        taus = [field.array(c["tau"]) for c in suns] if suns is not None else [field.tau_light]
+        shapes = [c.get("shape") for c in suns] if suns is not None else [field.meta.get("ms_shape")]
+        arrays = [linear_texture(field.array(sh["array"])) if sh else None for sh in shapes]
         diag = float(np.linalg.norm(np.subtract(*field.meta["world_bbox"][::-1])))
         blocks = sum(-(-n // BLOCK) for n in field.sigma_t.shape)
         # the longest march: every segment at most max_dtau of the medium's majorant
@@ -122,60 +126,13 @@ class FieldTextures:
         return cls(
             tau=tuple(linear_texture(t) for t in taus),
             ms=linear_texture(cls.mixed_ms(field, lights)),
+            shape=tuple(arrays),
+            frame=tuple(np.asarray(sh["frame"], float) if sh else None for sh in shapes),
             step=step,
             max_dtau=max_dtau,
             edge=float(field.meta["edge"]),
             max_steps=int(2 * (diag / step + dense + 3 * blocks) + 16),
         )
-
-
-# ------------------------------------------------------------------ phase functions
-
-
-def hg_phase(lobes: tuple, mu: mi.Float) -> mi.Float:
-    """p(mu) of a blend of Henyey-Greenstein lobes ((weight, g), ...), per steradian, mu the
-    cosine between the light's travel before and after scattering (Mitsuba's ``hg``: g > 0
-    forward):  p = sum_i w_i (1 - g_i^2) / (4pi (1 + g_i^2 - 2 g_i mu)^1.5)."""
-    p = mi.Float(0.0)
-    for w, g in lobes:  # the scene's lobes, unrolled into the kernel
-        denom = 1.0 + g * g - 2.0 * g * mu
-        p += w * (1.0 - g * g) / (4.0 * dr.pi * denom * dr.sqrt(denom))
-    return p
-
-
-#: ``gather``'s exact scattering events with an anisotropic phase: until the direction's mean
-#: cosine with the camera's, |g_eff|^k, is at most this (at most MAX_PHASE_BOUNCES events).
-#: Measured on the bench sphere back-lit at g = 0.85 (24^2, draft, gather 2048 spp against
-#: volpath at 16384, mean ratio): k = 20 (|g|^k = 0.04) 0.975, 25 (0.017) 0.991, 32 0.995.
-PHASE_MEMORY = 0.02
-MAX_PHASE_BOUNCES = 64
-
-
-def phase_bounces(phase) -> int:
-    """Exact scattering events of ``gather`` before the graph takes over: 1 for the isotropic
-    phase, else the least k with |g_eff|^k <= PHASE_MEMORY (g = 0.5: 6, g = 0.85: 25), at most
-    MAX_PHASE_BOUNCES. After k events a path's direction keeps a mean cosine of g_eff^k with the
-    one it started in (each event multiplies it by g_eff, whatever the phase's shape)."""
-    g = 0.0 if phase is None or phase.isotropic else abs(phase.mean_cosine())
-    if g <= PHASE_MEMORY:
-        return 1
-    return int(min(MAX_PHASE_BOUNCES, np.ceil(np.log(PHASE_MEMORY) / np.log(g) - 1e-9)))
-
-
-def sample_phase(lobes: tuple, d: mi.Vector3f, rng: mi.PCG32) -> mi.Vector3f:
-    """Directions w toward where light comes from, for light scattered into -d (d the ray's
-    direction), with density p(dot(w, d)): a lobe by its weight, then the HG inverse CDF
-    mu = (1 + g^2 - ((1 - g^2) / (1 - g + 2 g u))^2) / 2g (uniform where g = 0). The estimate's
-    weight p / pdf is 1."""
-    u_lobe, u, phi = rng.next_float32(), rng.next_float32(), 2.0 * dr.pi * rng.next_float32()
-    (w1, g1), *rest = lobes
-    g = mi.Float(g1) if not rest else dr.select(u_lobe < w1, g1, rest[0][1])
-    small = dr.abs(g) < 1e-4
-    gs = dr.select(small, 1.0, g)
-    sq = (1.0 - gs * gs) / (1.0 - gs + 2.0 * gs * u)
-    mu = dr.clip(dr.select(small, 2.0 * u - 1.0, (1.0 + gs * gs - sq * sq) / (2.0 * gs)), -1.0, 1.0)
-    s = dr.safe_sqrt(1.0 - mu * mu)
-    return mi.Frame3f(d).to_world(mi.Vector3f(s * dr.cos(phi), s * dr.sin(phi), mu))
 
 
 # ------------------------------------------------------------------ integrator
@@ -296,40 +253,18 @@ class GraphIntegrator(mi.SamplingIntegrator):
         L_in = L_ss + dr.select(collided2, L_ms, self._background(collided, w))
         return dr.select(collided, mi.Color3f(*self.albedo) * L_in, self._background(active, d))
 
-    @dr.syntax
     def _gather_phase(self, o, d, rng, active):
-        # gather with an anisotropic phase: the first ``bounces`` scattering events exactly, as
-        # volpath takes them (delta tracking; next-event estimation by ratio tracking, weighted
-        # by the phase at (to_light . w_in); the next direction sampled from the phase about
-        # w_in, weight p / pdf = 1), then one more flight to p'', where albedo L'_search(p'')
-        # of the similarity-scaled graph stands in for everything after (Eq. 4.25). The graph is
+        # gather with an anisotropic phase: the first ``bounces`` scattering events exactly
+        # (phase.phase_walk), then albedo L'_search of the similarity-scaled graph. The graph is
         # isotropic: its error is in where light goes next, which the phase remembers for
         # log(PHASE_MEMORY) / log|g_eff| events (phase_bounces), so those are taken exactly.
         # A sky: seen behind the medium, and where a flight leaves it (weight p / pdf = 1).
         albedo = mi.Color3f(*self.albedo)
-        t, alive = sample_collision(self.medium, o, d, rng, active & (self.bounces > 0))
-        L = self._background(active & ~alive, d)  # Radiance accumulator
-        p = mi.Point3f(o + t * d)  # Scattering point
-        w_in = mi.Vector3f(d)  # Direction the path (from the camera) arrived at p in
-        beta = mi.Color3f(1.0)  # Path throughput: albedo per scattering event
-        k = mi.UInt32(0)  # Scattering events taken
-        while dr.hint(alive, label="gather_phase"):
-            beta *= albedo
-            for to_light, E in zip(self.to_light, self.irradiance, strict=True):  # unrolled
-                tl = mi.Vector3f(*to_light)
-                Tr = ratio_tracking(self.medium, p, tl, rng, alive)
-                L += beta * Tr * E * hg_phase(self.lobes, dr.dot(tl, w_in))
-            w = sample_phase(self.lobes, w_in, rng)
-            t2, hit = sample_collision(self.medium, p, w, rng, alive)
-            L += beta * self._background(alive & ~hit, w)
-            k += 1
-            q = mi.Point3f(p + t2 * w)
-            if dr.hint(self.tail, mode="scalar"):  # unbounded depth: the graph takes over at q
-                last = hit & (k >= self.bounces)
-                L += dr.select(last, beta * albedo * self.grid.lookup(q, self.eps2, last), 0.0)
-            p, w_in = q, mi.Vector3f(w)
-            alive &= hit & (k < self.bounces)
-        return L
+        tail = (lambda q, m: albedo * self.grid.lookup(q, self.eps2, m)) if self.tail else None
+        suns = list(zip(self.to_light, self.irradiance, strict=True))
+        return phase_walk(
+            self.medium, self.lobes, suns, albedo, self._background, tail, o, d, rng, active, self.bounces
+        )
 
     def _light_phase(self, k: int, d: mi.Vector3f) -> mi.Color3f:
         """E p: directional light k's irradiance times the phase of its light scattered into -d,
@@ -367,14 +302,32 @@ class GraphIntegrator(mi.SamplingIntegrator):
             active &= (t < t_end) & (Tr > 1e-4)
         return L + Tr * self._background(mi.Bool(True), d)
 
-    def _field_at(self, p, active):
-        """(sigma_t, [tau_light per directional light], L_ms) at world points p (field.py)."""
+    def _field_at(self, p, active, views):
+        """(sigma_t, [tau_light per directional light], L_ms) at world points p (field.py);
+        ``views``: per directional light, E and the basis functions at the ray's direction
+        (:meth:`_views`) where the field keeps how its L_ms depends on the view, else None."""
         f = self.field
         pu = self.medium.world_to_unit @ mi.Point3f(p)
         ms = f.ms.eval(pu, active)
+        L_ms = mi.Color3f(ms[0], ms[1], ms[2])
+        for tex, view in zip(f.shape, views, strict=True):  # the suns, unrolled
+            if view is not None:
+                c = tex.eval(pu, active)
+                L_ms += view[0] * sum((c[i] * P for i, P in enumerate(view[1])), mi.Float(0.0))
+        if any(view is not None for view in views):  # (the series can ring below 0)
+            L_ms = dr.maximum(L_ms, 0.0)
         sigma_t = self.medium.texture.eval(pu, active)[0] * self.medium.scale
         taus = [self._tau_light(k, pu, active) for k in range(len(self.to_light))]
-        return sigma_t, taus, mi.Color3f(ms[0], ms[1], ms[2])
+        return sigma_t, taus, L_ms
+
+    def _views(self, d):
+        """Per directional light: (E, the shape's basis functions at d), constant along a ray,
+        where the field holds the light's ``ms_shape`` (else None)."""
+        views = []
+        for frame, E in zip(self.field.frame, self.irradiance, strict=True):
+            axes = [] if frame is None else [dr.dot(mi.Vector3f(*(float(c) for c in e)), d) for e in frame]
+            views.append(None if frame is None else (E, shape_basis(*axes)))
+        return views
 
     def _tau_light(self, k, pu, active):
         """Optical depth from points pu (in the unit cube) to directional light k: the grid's
@@ -416,7 +369,8 @@ class GraphIntegrator(mi.SamplingIntegrator):
         Tr = mi.Float(1.0)  # Transmittance from the camera
         active = active & (t < t_end)
         t = dr.select(active, t, 0.0)  # rays that miss may have no finite entry point
-        sigma0, taus0, ms0 = self._field_at(o + t * d, active)  # values at the segment's start
+        views = self._views(d)
+        sigma0, taus0, ms0 = self._field_at(o + t * d, active, views)  # values at the segment's start
         steps = mi.UInt32(0)  # Iteration cap: a ray takes each step and skips each block once
         started = mi.Bool(False)  # Whether the ray has reached a block with medium (and jittered)
         while dr.hint(active, label="field_march"):
@@ -428,7 +382,7 @@ class GraphIntegrator(mi.SamplingIntegrator):
             step = dr.minimum(f.step, f.max_dtau / dr.maximum(sigma_maj, 1e-12))
             jittered = dr.select(started, step, first * step / f.step)
             dt = step_length(empty, t, t_leave, t_end, jittered, 1e-3 * f.step)
-            sigma1, taus1, ms1 = self._field_at(o + (t + dt) * d, active)
+            sigma1, taus1, ms1 = self._field_at(o + (t + dt) * d, active, views)
             # One segment (nothing to add across an empty block)
             dtau = dr.select(empty, 0.0, 0.5 * (sigma0 + sigma1) * dt)
             seg_Tr, seg_ms = exponential_segment(dtau, ms0, ms1)

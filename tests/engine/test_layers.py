@@ -20,8 +20,8 @@ LAYERS: list[set[str]] = [
     {"volume"},
     # walks of the medium, Mitsuba scenes, parameters, the volume store, test volumes, lights
     {"tracing", "mitsuba_scene", "params", "store", "procedural", "lights"},
-    # nodes, direct light, the spatial index, the field's file, cache keys and store
-    {"nodes", "lighting", "spatial", "field_file", "field_grid", "cache"},
+    # nodes, direct light, the spatial index, the field's file, cache keys and store, phase walks
+    {"nodes", "lighting", "spatial", "field_file", "field_grid", "cache", "phase"},
     # the graph build, the field bake, the integrator plugin (reads caches only)
     {"build", "field", "integrators.graph"},
     {"stages"},  # stage name -> chunk function

@@ -151,7 +151,7 @@ def test_phase_sampling_follows_the_phase(variant):
     import drjit as dr
     import mitsuba as mi
 
-    from cloudgraph.integrators.graph import hg_phase, sample_phase
+    from cloudgraph.phase import hg_phase, sample_phase
 
     lobes = PhaseSpec(type="hg2", g=(0.85, -0.3), weight=0.8).lobes()
     n = 1 << 18

@@ -90,7 +90,7 @@ def make_field(shape=(24, 20, 28), unit_to_world=None, block=4, seed=1, ms_coars
 def encode(field: dict, compress: bool = False) -> bytes:
     """The route's body for ``field`` (gzip-compressed when ``compress``)."""
     header = json.loads(json.dumps(field["header"]))
-    names = ["sigma_t", "tau_light", "radiance_ms", "majorant"]
+    names = list(field["raw"])  # the four arrays, then any others (ms_shape)
     # offsets depend on the header's length, which depends on the offsets: iterate to a fixpoint
     offsets = {n: 0 for n in names}
     for _ in range(4):
@@ -111,6 +111,47 @@ def encode(field: dict, compress: bool = False) -> bytes:
         body.extend(b"\0" * (offsets[n] - len(body)))
         body.extend(field["raw"][n].astype("<f2").tobytes())
     return gzip.compress(bytes(body)) if compress else bytes(body)
+
+
+def add_view_terms(field: dict, seed: int = 3) -> None:
+    """Gives ``field`` an anisotropic phase's view terms (api.md, ``ms_shape``): 14 smooth
+    channels on the radiance grid, of the size of radiance_ms, in a frame about the light."""
+    rng = np.random.default_rng(seed)
+    rad = field["values"]["radiance_ms"]
+    mz, my, mx = rad.shape[:3]
+    zz, yy, xx = np.meshgrid(*[(np.arange(n) + 0.5) / n for n in (mz, my, mx)], indexing="ij")
+    lum = rad.mean(axis=-1)
+    terms = np.stack(
+        [
+            lum * a * (0.6 + 0.8 * (b * xx + (1 - b) * zz))
+            for a, b in zip(rng.uniform(-0.5, 0.5, 14), rng.uniform(0, 1, 14), strict=True)
+        ],
+        axis=-1,
+    )
+    terms[..., 1] = 1.5 * lum  # P_1: the forward peak, toward the light
+    to_light = -np.asarray(field["header"]["light"]["direction"], float)
+    ez = to_light / np.linalg.norm(to_light)
+    ex = np.cross([0.0, 0.0, 1.0] if abs(ez[2]) < 0.9 else [1.0, 0.0, 0.0], ez)
+    ex /= np.linalg.norm(ex)
+    frame = np.stack([ex, np.cross(ez, ex), ez])
+    scale = np.abs(terms).reshape(-1, 14).max(axis=0) / 1000.0
+    field["raw"]["ms_shape"] = (terms / scale).astype(np.float16)
+    field["values"]["ms_shape"] = field["raw"]["ms_shape"].astype(np.float32) * scale.astype(np.float32)
+    field["header"]["ms_shape"] = {"array": "ms_shape", "frame": frame.tolist()}
+    field["header"]["arrays"]["ms_shape"] = {
+        "dtype": "float16",
+        "shape": [mz, my, mx, 14],
+        "scale": scale.tolist(),
+    }
+
+
+def view_basis(d: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """(N, 14) the view terms' functions of direction at unit directions d (N, 3), written out
+    as api.md gives them: in the frame's coordinates (x, y, z), y, z, x, 6xy, 3yz, P_2(z), 3xz,
+    3(x^2 - y^2), then P_3(z) .. P_8(z)."""
+    x, y, z = (d @ np.asarray(frame, float).T).T
+    P = [np.polynomial.legendre.Legendre.basis(n)(z) for n in range(9)]
+    return np.stack([y, z, x, 6 * x * y, 3 * y * z, P[2], 3 * x * z, 3 * (x * x - y * y), *P[3:]], axis=1)
 
 
 def _sample(grid: np.ndarray, unit: np.ndarray) -> np.ndarray:
@@ -176,6 +217,7 @@ def reference_render(
     L = np.zeros((len(d), 3))
     Tr = np.ones(len(d))
     direct = np.asarray(h["light"]["irradiance"]) / (4 * math.pi)
+    basis = view_basis(d, h["ms_shape"]["frame"]) if "ms_shape" in h else None
     albedo = np.asarray(h["albedo"])
     for k in range(int(n.max(initial=0))):
         live = k < n
@@ -185,6 +227,9 @@ def reference_render(
         s = _sample(v["sigma_t"], p)
         tau = _tau_light(h, v, p)
         rad = _sample(v["radiance_ms"], p)
+        if basis is not None:  # E sum_i c_i B_i(d), L_ms clamped at 0
+            view = (_sample(v["ms_shape"], p) * basis[idx]).sum(axis=1)
+            rad = np.maximum(rad + 4 * math.pi * direct * view[:, None], 0.0)
         a = np.exp(-s * dt[idx])
         L_in = direct * (factor[idx] * np.exp(-tau))[:, None] + rad  # E p exp(-tau) + L_ms
         L[idx] += (Tr[idx] * (1 - a))[:, None] * albedo * L_in

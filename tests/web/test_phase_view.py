@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from .fieldmaker import make_field, reference_render, rel_mae
+from .fieldmaker import add_view_terms, make_field, reference_render, rel_mae, view_basis
 from .test_glview import browser, camera, page, render  # noqa: F401 (fixtures)
 
 
@@ -38,6 +38,43 @@ def test_the_page_weights_single_scattering_by_the_phase_per_pixel(page, phase, 
         assert ref.mean() > 5, "the reference image is black: a useless test"
         assert rel_mae(img, ref) < 0.025
         assert rel_mae(plain, ref) > 0.1, "the phase changed little: a useless test"
+
+
+def test_the_page_adds_the_view_terms_of_an_anisotropic_field(page):  # noqa: F811
+    # The field of an anisotropic phase keeps how the sun's L_ms depends on the view (14
+    # functions of direction, api.md): the page's march adds them per sample and clamps at 0,
+    # as the server's does, against the numpy march that reads them independently.
+    field, plain = make_field(), make_field()
+    for f in (field, plain):
+        f["header"]["phase"] = {"type": "hg", "g": 0.85}
+        f["header"]["light"]["irradiance"] = [0.2, 0.18, 0.16]  # L_ms the most of the image
+    add_view_terms(field)
+    lo, hi = (np.asarray(v) for v in field["header"]["world_bbox"])
+    c, r = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
+    cams = [
+        camera(c + r * np.array([0.1, -1.1, 0.2]), c, fov=50),  # from below, into the light
+        camera(c + r * np.array([1.2, 0.1, 0.3]), c),  # from the side
+    ]
+    images = render(page, field, cams)
+    for cam, img, without in zip(cams, images, render(page, plain, cams), strict=True):
+        ref = reference_render(field, cam, lobes=[(1.0, 0.85)])
+        assert ref.mean() > 5, "the reference image is black: a useless test"
+        assert rel_mae(img, ref) < 0.025
+        assert rel_mae(without, ref) > 0.1, "the view terms changed little: a useless test"
+
+
+def test_the_view_terms_are_the_engine_s_functions_of_direction():
+    # The page's and the numpy march's functions (written out) are the engine's (phase.py's
+    # derivatives of Legendre polynomials), term by term
+    from cloudgraph.phase import light_frame, shape_basis
+
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(500, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    frame = light_frame([0.3, -0.8, 0.5])
+    local = d @ frame.T
+    engine = np.stack(shape_basis(*local.T), axis=1)
+    np.testing.assert_allclose(view_basis(d, frame), engine, atol=1e-12)
 
 
 def test_the_scene_panel_reads_the_phase_as_the_spec_has_it(page):  # noqa: F811

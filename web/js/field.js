@@ -13,6 +13,10 @@ export class FieldError extends Error {
   }
 }
 
+/** Channels of an ms_shape array: the functions of direction of cloudgraph/phase.py's
+ * SHAPE_TERMS (shaders.js writes them out). */
+export const SHAPE_TERMS = 14;
+
 const ARRAYS = {
   sigma_t: { dims: 3 },
   tau_light: { dims: 3 },
@@ -59,6 +63,12 @@ export function decodeField(buffer) {
   const lights = header.lights ? lightComponents(header.lights) : null;
   const specs = { ...ARRAYS };
   if (lights && lights.sky) specs[lights.sky] = ARRAYS.radiance_ms;
+  // An anisotropic phase's field: how the sun's L_ms depends on the view (api.md, ms_shape)
+  const shapeSpec = lights ? lights.shape : header.ms_shape || null;
+  if (shapeSpec) {
+    if (!shapeSpec || typeof shapeSpec.array !== "string") throw new FieldError("the field's ms_shape names no array");
+    specs[shapeSpec.array] = { dims: 4, channels: SHAPE_TERMS };
+  }
   const arrays = {};
   for (const [name, spec] of Object.entries(specs)) {
     const a = header.arrays && header.arrays[name];
@@ -73,7 +83,7 @@ export function decodeField(buffer) {
     if (!Number.isInteger(a.offset) || a.offset % 2 || a.offset < 12 + headerLength || a.offset + 2 * count > buffer.byteLength) {
       throw new FieldError(`${name}: its bytes lie outside the body`);
     }
-    const scale = spec.channels ? vec(a.scale, 3, `${name} scale`) : Number(a.scale ?? 1);
+    const scale = spec.channels ? vec(a.scale, spec.channels, `${name} scale`) : Number(a.scale ?? 1);
     if (!spec.channels && !Number.isFinite(scale)) throw new FieldError(`${name}: bad scale`);
     arrays[name] = { data: new Uint16Array(buffer, a.offset, count), shape, scale, block: a.block };
   }
@@ -103,6 +113,8 @@ export function decodeField(buffer) {
     // v1.1: { sun: whether the first component is a directional light, sky: its radiance
     // array's name or null }; null for a v1 field
     lights,
+    // { array: its name, frame: 9 numbers, rows e_x, e_y, e_z (e_z toward the light) } or null
+    shape: shapeSpec ? { array: shapeSpec.array, frame: vec((shapeSpec.frame || []).flat(), 9, "ms_shape frame") } : null,
     albedo: vec(header.albedo, 3, "albedo"),
     step,
     maxDtau,
@@ -137,6 +149,7 @@ function lightComponents(list) {
   }
   return {
     sun: !!sun,
+    shape: (sun && sun.shape) || null,
     // without a sun the sky is the first component: its radiance is radiance_ms itself
     sky: sky ? sky.ms : null,
     direction: sun ? sun.direction : [0, -1, 0],

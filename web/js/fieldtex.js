@@ -13,6 +13,18 @@ export function interleaved(a, b) {
   return out;
 }
 
+/** Channels [from, from + 4) of a float16 array of ``channels`` per texel, as RGBA (zero past
+ * its last channel). */
+export function channelGroup(data, channels, from) {
+  const n = data.length / channels;
+  const out = new Uint16Array(4 * n);
+  const k = Math.min(4, channels - from);
+  for (let i = 0; i < n; i++) {
+    for (let c = 0; c < k; c++) out[4 * i + c] = data[i * channels + from + c];
+  }
+  return out;
+}
+
 const HALF = new Float32Array(65536);
 for (let h = 0; h < 65536; h++) HALF[h] = halfToFloat(h);
 

@@ -2,7 +2,8 @@
 // read-back of an image at a given size for comparisons. Knows nothing of the DOM around it.
 
 import { fragmentShader, VERTEX } from "./shaders.js";
-import { interleaved, packedField } from "./fieldtex.js";
+import { channelGroup, interleaved, packedField } from "./fieldtex.js";
+import { SHAPE_TERMS } from "./field.js";
 import { linearToSrgb8, srgbToLinear } from "./imagemath.js";
 import { cross, normalize, sub } from "./camera.js";
 
@@ -129,7 +130,9 @@ export class GLView {
     const count = (a) => a.shape[0] * a.shape[1] * a.shape[2];
     const { sigma_t, radiance_ms, majorant } = field.arrays;
     const skies = skyArray(field) ? 2 : 1; // a v1.1 field's sky: a second radiance texture
-    return Math.round((4 + (8 * 8) / 7) * count(sigma_t) + 8 * skies * count(radiance_ms) + 2 * count(majorant));
+    // an anisotropic phase's view terms: RGBA16F textures of four channels each
+    const shape = field.shape ? 8 * Math.ceil(SHAPE_TERMS / 4) * count(field.arrays[field.shape.array]) : 0;
+    return Math.round((4 + (8 * 8) / 7) * count(sigma_t) + 8 * skies * count(radiance_ms) + 2 * count(majorant) + shape);
   }
 
   /**
@@ -193,7 +196,12 @@ export class GLView {
     };
     const m = mixOf(field, this.mix);
     const sky = skyArray(field);
+    const shape = field.shape ? field.arrays[field.shape.array] : null;
+    const groups = shape ? Array.from({ length: Math.ceil(SHAPE_TERMS / 4) }, (_, g) => 4 * g) : [];
     const textures = {
+      ...Object.fromEntries(
+        groups.map((from) => [`shape${from / 4}`, make(shape, gl.RGBA16F, gl.RGBA, channelGroup(shape.data, SHAPE_TERMS, from), gl.LINEAR)]),
+      ),
       densTau: make(sigma_t, gl.RG16F, gl.RG, interleaved(sigma_t.data, tau_light.data), gl.LINEAR),
       rad: make(radiance_ms, gl.RGB16F, gl.RGB, radiance_ms.data, gl.LINEAR),
       sky: sky ? make(sky, gl.RGB16F, gl.RGB, sky.data, gl.LINEAR) : null,
@@ -231,6 +239,9 @@ export class GLView {
       textureBytes: GLView.textureBytes(field),
       radianceKey: field.header.radiance_key,
       phase: phaseLobes(field.header.phase),
+      // the view terms' scales, four a texture (zero past the last), and their frame
+      shapeScale: shape ? groups.flatMap((from) => [0, 1, 2, 3].map((c) => (from + c < SHAPE_TERMS ? shape.scale[from + c] : 0))) : null,
+      shapeFrame: field.shape ? field.shape.frame : null,
       toLight: normalize(field.light.direction.map((c) => -c)),
     };
   }
@@ -269,6 +280,11 @@ export class GLView {
     if (L.uAnisotropic) gl.uniform1i(L.uAnisotropic, f.phase ? 1 : 0);
     if (L.uPhase) gl.uniform3fv(L.uPhase, f.phase || [0, 0, 1]);
     if (L.uToLight) gl.uniform3fv(L.uToLight, f.toLight);
+    if (L.uHasShape) gl.uniform1i(L.uHasShape, f.shapeScale ? 1 : 0);
+    if (f.shapeScale && L["uShapeScale[0]"]) {
+      gl.uniform4fv(L["uShapeScale[0]"], f.shapeScale);
+      gl.uniformMatrix3fv(L.uShapeFrame, true, f.shapeFrame);
+    }
     gl.uniform3fv(L.uAlbedo, f.albedo);
     gl.uniform1f(L.uGain, 2 ** exposure);
     gl.uniform3fv(L.uBlockCells, f.blockCells);
@@ -286,6 +302,7 @@ export class GLView {
       ["uRad", this.textures.rad],
       ["uMaj", this.textures.maj],
       ["uRadSky", this.textures.sky || this.textures.rad],
+      ...[0, 1, 2, 3].map((g) => [`uShape${g}`, this.textures[`shape${g}`] || this.textures.rad]),
     ];
     units.forEach(([name, tex], i) => {
       if (!L[name]) return; // optimised away

@@ -12,6 +12,9 @@
 //                     + M0 (1 - e^-dtau) + (M1 - M0) (1 - e^-dtau (1 + dtau)) / dtau];  Tr *= e^-dtau
 //   segments of at most uMaxDtau at the block's majorant, and uStep; the first (1 - u) of one
 //   long, with one jitter u per pixel; stop when Tr < 1e-3
+// An anisotropic phase's field adds to L_ms the sun's view terms: E sum_i c_i(x) B_i(d), with
+// B_i the functions of direction of cloudgraph/phase.py (in uShapeFrame: z toward the light;
+// per ray) and c_i the ms_shape array's 14 channels, then clamps L_ms at 0, as the server does.
 // A v1.1 field's sky: its radiance array (in-scattered sky light, single scattering included)
 // added to L_ms, and the sky seen behind the medium, L += Tr uSky at the ray's end.
 // then display: clamp(L 2^exposure, 0, 1) through the sRGB transfer.
@@ -75,6 +78,13 @@ uniform float uMajScale;      // majorant per world unit = texel * uMajScale
 uniform float uMaxDtau;       // optical depth of a segment at most, at the block's majorant
 uniform vec3 uLightUnit;      // the direction toward the light in the unit cube, per world unit
 uniform float uEdge;          // where the light enters within this, tau_light is integrated
+uniform bool uHasShape;       // whether the field holds the sun's view terms (ms_shape)
+uniform sampler3D uShape0;    // ms_shape's channels 0-3 / their scales (linear)
+uniform sampler3D uShape1;    // 4-7
+uniform sampler3D uShape2;    // 8-11
+uniform sampler3D uShape3;    // 12-13 (BA unused)
+uniform vec4 uShapeScale[4];  // the channels' scales
+uniform mat3 uShapeFrame;     // rows e_x, e_y, e_z of the view terms' frame (e_z toward the light)
 
 out vec4 outColor;
 
@@ -102,6 +112,22 @@ float phaseFactor(vec3 d) {
   return uPhase.z * hg4pi(uPhase.x, mu) + (1.0 - uPhase.z) * hg4pi(uPhase.y, mu);
 }
 
+// The view terms' functions of direction at the ray's direction d (constant along a ray):
+// in the frame's coordinates (x, y, z), y, z, x, 6xy, 3yz, P2(z), 3xz, 3(x^2 - y^2), P3..P8(z).
+vec4 gB[4];
+void viewBasis(vec3 d) {
+  vec3 v = uShapeFrame * d;  // (e_x . d, e_y . d, e_z . d): the frame's rows
+  float x = v.x, y = v.y, z = v.z;
+  float P[9];
+  P[0] = 1.0;
+  P[1] = z;
+  for (int n = 1; n < 8; n++) P[n + 1] = (float(2 * n + 1) * z * P[n] - float(n) * P[n - 1]) / float(n + 1);
+  gB[0] = vec4(y, z, x, 6.0 * x * y);
+  gB[1] = vec4(3.0 * y * z, P[2], 3.0 * x * z, 3.0 * (x * x - y * y));
+  gB[2] = vec4(P[3], P[4], P[5], P[6]);
+  gB[3] = vec4(P[7], P[8], 0.0, 0.0);
+}
+
 float srgb(float x) {
   return x <= 0.0031308 ? 12.92 * x : 1.055 * pow(x, 1.0 / 2.4) - 0.055;
 }
@@ -126,6 +152,11 @@ Sample sampleAt(vec3 p) {
   s.sigma = st.r * uSigmaScale;
   s.ms = texture(uRad, p).rgb * uRadScale;
   if (uHasSky) s.ms += texture(uRadSky, p).rgb * uSkyRadScale;
+  if (uHasShape) {
+    float view = dot(texture(uShape0, p) * uShapeScale[0], gB[0]) + dot(texture(uShape1, p) * uShapeScale[1], gB[1])
+               + dot(texture(uShape2, p) * uShapeScale[2], gB[2]) + dot(texture(uShape3, p) * uShapeScale[3], gB[3]);
+    s.ms = max(s.ms + uDirect * (4.0 * 3.14159265358979) * view, 0.0);
+  }
   // Where the light enters the box the grid's texture clamps: integrate sigma_t there instead
   // (a point on the box's surface, where a ray enters it, counts as inside; the light never
   // leaves through the faces it runs parallel to)
@@ -162,6 +193,7 @@ void main() {
   float tEnd = min(min(thi.x, thi.y), thi.z);
   vec3 L = vec3(0.0);           // radiance accumulator
   vec3 direct = uDirect * phaseFactor(d);  // E p: single scattering's, constant along the ray
+  if (uHasShape) viewBasis(d);
   float Tr = 1.0;               // transmittance from the eye
   if (tEnd > t) {
     float frac = 1.0 - jitter(uvec2(gl_FragCoord.xy));  // the first segment's share of a step
