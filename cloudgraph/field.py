@@ -92,10 +92,14 @@ MS_CHUNK = 1 << 12
 #: events exact, from directions half uniform and half from the phase about the light).
 WALKS = 64
 #: ... and the width (standard deviation, in multiple-scattering grid points) of the Gaussian
-#: that smooths the walks' estimates over the grid. On the bench sphere at g = 0.85 (64^2,
-#: field against volpath at 16,384 spp, binned relMAE / mean): 128 walks unsmoothed 8.2 % / 1.040
-#: side-lit, 512 walks 7.5 % / 1.039; 128 walks smoothed over 2 points 6.0 % / 0.996; 64 walks
-#: smoothed over 2 points 7.9 % / 0.985 side-lit, 4.2 % / 0.984 back-lit.
+#: that smooths the walks' estimates over the grid: 0 up to |g_eff| = 0.5, WALK_SMOOTH from
+#: 0.85 on, linear between. A peaked phase makes the walks heavy-tailed (next-event estimation
+#: weighted by the peak): on the bench sphere at g = 0.85 (64^2, field against volpath at 16,384
+#: spp, binned relMAE / mean) 128 walks unsmoothed read 8.2 % / 1.040 side-lit and 512 walks
+#: 7.5 % / 1.039, 64 walks smoothed over 2 points 7.9 % / 0.985 (back-lit 4.2 % / 0.984). At
+#: g = 0.5 (draft, against 4096 spp) smoothing costs more than it saves: unsmoothed 3.9 %, over
+#: 1 point 5.9 %, 2 points 8.4 % (gather 3.0 %); smoothing the ratio to the one-flight L_ms
+#: instead read 4.8 % there and 7.9 / 5.5 % at g = 0.85.
 WALK_SMOOTH = 2.0
 TAU_CHUNK = 1 << 18
 LOOKUP_CHUNK = 1 << 19
@@ -264,7 +268,7 @@ def bake_field(
         for g, n in zip(gathered, width, strict=True)
     ]
     for c in walked:  # (the view's terms, smooth, kept at half the resolution)
-        ms[c] = smooth(ms[c], ms_near.reshape(ms_shape[::-1]), WALK_SMOOTH)
+        ms[c] = smooth(ms[c], ms_near.reshape(ms_shape[::-1]), walk_smoothing(phase))
     shapes = {c: np.ascontiguousarray(ms[c][..., 3:]) for c in walked}
     mask = ms_near.reshape(ms_shape[::-1])
     shapes = {c: _halve(v, mask) for c, v in shapes.items()}
@@ -373,10 +377,17 @@ def _lookup(inputs: dict, q: np.ndarray, node_radius: float) -> np.ndarray:
     return fill_unreached(from_jit(G), q, positions, node_G)
 
 
+def walk_smoothing(phase) -> float:
+    """The Gaussian's width (grid points) that smooths the walks' estimates (WALK_SMOOTH)."""
+    return WALK_SMOOTH * float(np.clip((abs(phase.mean_cosine()) - 0.5) / 0.35, 0.0, 1.0))
+
+
 def smooth(values: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
     """(..., C) grid values averaged with a Gaussian of ``sigma`` grid points over the points of
     ``mask`` only (normalised by the mask's own average: the medium's edge blends in no zeros),
     0 off the mask."""
+    if sigma <= 0:
+        return np.where(mask[..., None], values, 0.0).astype(values.dtype)
     m = mask.astype(np.float64)
     weight = gaussian_filter(m, sigma, mode="constant")
     out = np.zeros_like(values)
