@@ -60,6 +60,12 @@ def graph_key(vol_id: str, density_scale: float, build_params: dict) -> str:
     )
 
 
+#: The bake of an anisotropic phase's field (field.py): 2 since its L_ms depends on the view
+#: (``ms_shape``). Its caches' radiance keys hold it, so that fields baked before are baked
+#: again; isotropic keys are as they were.
+PHASE_FIELD_VERSION = 2
+
+
 def radiance_key(
     g_key: str,
     albedo,
@@ -89,6 +95,7 @@ def radiance_key(
         doc["lights"] = lights
     if phase_lobes is not None:
         doc["phase"] = np.asarray(phase_lobes, float).round(9).tolist()
+        doc["phase_field"] = PHASE_FIELD_VERSION
     return _digest(doc)
 
 
