@@ -18,6 +18,11 @@ the density grid, split as the ``gather`` estimator splits it:
   :data:`MS_DIRECTIONS` directions in closed form, not sampled. It is smooth, so it lives on a
   grid :data:`MS_COARSEN` times coarser per axis (more for large media).
 
+An anisotropic phase (docs/method.md, "Anisotropic scattering") bakes each sun's L_ms by the
+walks of ``gather`` (its first scattering events exact) from the grid points, and keeps how it
+depends on the view as coefficients of 14 functions of direction (``ms_shape``,
+:func:`_walk_ms`).
+
 A camera render is then a deterministic ray march with two texture lookups per step (the
 ``field`` estimator of the graph integrator, and the page's WebGL view), of one file
 (field_file.py). Grid values sit at texel centres, (i + 0.5) / n of the unit cube that
@@ -267,11 +272,10 @@ def bake_field(
         _scatter(ms_near, placed(g, len(q), n), (*ms_shape[::-1], n))
         for g, n in zip(gathered, width, strict=True)
     ]
-    for c in walked:  # (the view's terms, smooth, kept at half the resolution)
-        ms[c] = smooth(ms[c], ms_near.reshape(ms_shape[::-1]), walk_smoothing(phase))
-    shapes = {c: np.ascontiguousarray(ms[c][..., 3:]) for c in walked}
     mask = ms_near.reshape(ms_shape[::-1])
-    shapes = {c: _halve(v, mask) for c, v in shapes.items()}
+    for c in walked:
+        ms[c] = smooth(ms[c], mask, walk_smoothing(phase))
+    shapes = {c: _halve(ms[c][..., 3:], mask) for c in walked}  # (smooth: half the resolution)
     ms = [np.ascontiguousarray(m[..., :3]) for m in ms]
     progress("field", 1.0)
     t_ms += time.perf_counter() - t0
