@@ -157,6 +157,16 @@ def open_scene(pg, service, data_dir) -> None:
     assert pg.get_attribute("#cache-state", "data-state") == "ready", errors_shown(pg)
 
 
+def assert_realtime_is_the_server_field(page, what: str, max_rel_mae: float) -> None:
+    """The page's comparison (compare_realtime) finds its view within ``max_rel_mae`` of the
+    server's `field` render of the same camera, and no error is shown."""
+    result = compare_realtime(page)
+    rel = float(result["relMae"])
+    print(f"{what}: real-time vs server field: relMAE {rel:.4f}")
+    assert 0 <= rel < max_rel_mae, result["text"]
+    assert errors_shown(page) == []
+
+
 def compare_realtime(page) -> dict:
     """Runs the page's "compare real-time view" at 128 px (volpath at 8 spp) and returns its
     result's data attributes (``relMae``, ``relMaeVolpath``) and ``text``; asserts it finished."""

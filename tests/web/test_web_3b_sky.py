@@ -6,7 +6,14 @@ brings back the v1 cache."""
 
 from __future__ import annotations
 
-from .page import compare_realtime, errors_shown, frames_drawn, shot, shown_pixels, wait_rest
+from .page import (
+    assert_realtime_is_the_server_field,
+    errors_shown,
+    frames_drawn,
+    shot,
+    shown_pixels,
+    wait_rest,
+)
 from .test_web_3_compare_relight import MAX_FIELD_REL_MAE
 
 
@@ -38,11 +45,7 @@ def test_a_sky_relights_then_is_drawn_behind_the_cloud_like_the_server(page):
     assert dark < 20 and sky > dark + 50, (dark, sky)  # black behind the cloud before, the sky now
     shot(page, "08e-sky")
 
-    result = compare_realtime(page)
-    rel = float(result["relMae"])
-    print(f"sun + sky: real-time vs server field: relMAE {rel:.4f}")
-    assert 0 <= rel < MAX_FIELD_REL_MAE, result["text"]
-    assert errors_shown(page) == []
+    assert_realtime_is_the_server_field(page, "sun + sky", MAX_FIELD_REL_MAE)
 
 
 def test_new_intensities_of_the_lights_re_draw_with_no_request(page):

@@ -6,7 +6,7 @@ back the cache it had."""
 
 from __future__ import annotations
 
-from .page import compare_realtime, errors_shown, frames_drawn, shot, wait_rest
+from .page import assert_realtime_is_the_server_field, errors_shown, frames_drawn, shot, wait_rest
 from .test_web_3_compare_relight import MAX_FIELD_REL_MAE
 
 #: The isotropic cache's field key (the last step brings it back).
@@ -30,11 +30,7 @@ def test_a_forward_scattering_cloud_is_drawn_like_the_server_draws_it(page):
     )
     wait_rest(page, frames_drawn(page) - 1)
     shot(page, "08h-forward-scattering")
-    result = compare_realtime(page)
-    rel = float(result["relMae"])
-    print(f"g = 0.85: real-time vs server field: relMAE {rel:.4f}")
-    assert 0 <= rel < MAX_FIELD_REL_MAE, result["text"]
-    assert errors_shown(page) == []
+    assert_realtime_is_the_server_field(page, "g = 0.85", MAX_FIELD_REL_MAE)
 
 
 def test_the_isotropic_phase_brings_back_its_cache(page):
