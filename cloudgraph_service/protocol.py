@@ -32,7 +32,7 @@ from typing import Any, ClassVar, Literal, Self
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from redis import Redis
 from rq import Queue
-from rq.exceptions import NoSuchJobError
+from rq.exceptions import InvalidJobOperation, NoSuchJobError
 from rq.job import Job, JobStatus
 
 from .errors import PayloadError
@@ -242,7 +242,10 @@ def end_if_orphaned(job: Job) -> bool:
         why += f": {dep.meta['error']}"
     job.meta.update({"error": why, "failed" if failed else "canceled": True})
     job.save_meta()
-    job.cancel()
+    try:
+        job.cancel()
+    except InvalidJobOperation:  # ended meanwhile by another process (a sweep, a request): done
+        return True
     end_dependents(job, why, failed)
     return True
 

@@ -7,6 +7,7 @@ bytes of an undisturbed run, within 5 s of the dead part being back; nothing lea
 from __future__ import annotations
 
 import os
+import re
 import signal
 import time
 
@@ -105,7 +106,9 @@ def _outcome(svc: Launched, part: str, old: dict[str, int], restarts: int) -> No
         if other != part:
             assert now[other] == old[other], (other, old, now)
     name = "worker 1" if part in ("worker", "supervisor") else part
-    lines = [ln for ln in svc.log_text().splitlines() if ln.startswith(f"cloudgraph: {name} (pid ")]
+    # (anywhere in a line: another process's output, Mitsuba's colour reset, may precede it)
+    mark = re.compile(rf"cloudgraph: {re.escape(name)} \(pid \d+\) exited")
+    lines = [ln for ln in svc.log_text().splitlines() if mark.search(ln)]
     assert len(lines) == restarts, lines
     if part == "supervisor":
         assert f"(pid {old['supervisor']}) exited with status 137; starting it again in" in lines[-1]
