@@ -5,8 +5,8 @@ The graph of an anisotropic medium is isotropic (the similarity-scaled medium's)
 on the phase is taken exactly where it matters most: :func:`phase_walk` follows a path through
 its first scattering events as volpath does, then the graph's radiance stands in for the rest.
 ``gather`` starts it at the camera's first collision (integrators/graph.py); the field's bake
-starts it at grid points and keeps the result's dependence on direction as Legendre moments
-about the light (field.py). Both read :func:`hg_phase`, :func:`sample_phase` and
+starts it at grid points and keeps the result's dependence on direction as coefficients of
+:func:`shape_basis` (field.py). Both read :func:`hg_phase`, :func:`sample_phase` and
 :func:`phase_bounces`.
 """
 
@@ -47,7 +47,7 @@ _Q = {
 def shape_basis(x, y, z) -> list:
     """The :data:`SHAPE_TERMS` functions at unit directions (x, y, z) of the light's frame
     (numpy arrays or Dr.Jit floats)."""
-    re, im = [x * 0.0 + 1.0], [x * 0.0]  # Re, Im (x + iy)^m
+    re, im = [x * 0.0 + 1.0], [x * 0.0]  # Re, Im (x + iy)^m (P_l's by its polynomial: Horner)
     for _ in range(SHAPE_FULL):
         re, im = re + [re[-1] * x - im[-1] * y], im + [re[-1] * y + im[-1] * x]
     out = []
@@ -99,14 +99,6 @@ def phase_legendre(lobes: tuple, order: int) -> np.ndarray:
     direction whose Legendre moments about an axis are a_l, convolved with the phase, has
     moments g_l a_l (Funk-Hecke; a Henyey-Greenstein lobe's are exactly g^l)."""
     return sum(w * float(g) ** np.arange(order + 1) for w, g in lobes)
-
-
-def legendre(mu, order: int) -> list:
-    """[P_0(mu), ..., P_order(mu)] by Bonnet's recurrence (numpy arrays or Dr.Jit floats)."""
-    P = [mu * 0.0 + 1.0, mu]
-    for n in range(1, order):
-        P.append(((2 * n + 1) * mu * P[n] - n * P[n - 1]) / (n + 1))
-    return P[: order + 1]
 
 
 def phase_bounces(phase) -> int:
