@@ -295,10 +295,7 @@ def bake_field(
         direction = -towards_light(lights.directions[0])
         meta["light"] = {"direction": direction.tolist(), "irradiance": lights.intensity[0].tolist()}
         if shapes:
-            meta["ms_shape"] = {
-                "array": "ms_shape",
-                "frame": light_frame(towards_light(lights.directions[0])).tolist(),
-            }
+            meta["ms_shape"] = _shape_entry("ms_shape", lights, 0)
             extra["ms_shape"] = shapes[0]
     else:  # v1.1: each component's arrays, at unit intensity (the scene's mix them)
         del meta["light"]
@@ -312,12 +309,8 @@ def bake_field(
                     extra[entry["tau"]] = taus[c]
             entry["ms"] = "radiance_ms" if c == 0 else f"radiance_ms_{c}"
             if c in shapes:
-                name = "ms_shape" if c == 0 else f"ms_shape_{c}"
-                entry["shape"] = {
-                    "array": name,
-                    "frame": light_frame(towards_light(lights.directions[c])).tolist(),
-                }
-                extra[name] = shapes[c]
+                entry["shape"] = _shape_entry("ms_shape" if c == 0 else f"ms_shape_{c}", lights, c)
+                extra[entry["shape"]["array"]] = shapes[c]
             if c > 0:
                 extra[entry["ms"]] = ms[c]
             meta["lights"].append(entry)
@@ -379,6 +372,11 @@ def _lookup(inputs: dict, q: np.ndarray, node_radius: float) -> np.ndarray:
     G = grid.lookup(to_jit(mi.Point3f, q), (0.05 * node_radius) ** 2, mi.Bool(True))
     dr.eval(G)  # one kernel for the three channels
     return fill_unreached(from_jit(G), q, positions, node_G)
+
+
+def _shape_entry(name: str, lights: Lights, c: int) -> dict:
+    """The header's entry of sun c's view terms: their array's name and frame (api.md)."""
+    return {"array": name, "frame": light_frame(towards_light(lights.directions[c])).tolist()}
 
 
 def walk_smoothing(phase) -> float:

@@ -18,9 +18,10 @@ dilated by one voxel: empty-space skipping). What the arrays hold: field.py. A f
 first component's are ``tau_light`` and ``radiance_ms``, the others' ``tau_light_K`` and
 ``radiance_ms_K`` after ``majorant`` (``tau_light`` is zero without a directional light).
 A field of an anisotropic phase also holds, per directional light, ``ms_shape`` (header
-``ms_shape``, or the component's ``shape``: ``ms_shape_K``): (mz, my, mx, 8) Legendre
-moments c_1..c_8 of its L_ms about the light at unit intensity, whose sum with
-``radiance_ms`` is L_ms seen along a ray (field.py, ``_walk_ms``).
+``ms_shape``, or the component's ``shape``: its array ``ms_shape_K`` and its frame):
+(mz', my', mx', 14) coefficients c_i of the functions of direction of phase.shape_basis at unit
+intensity, at half radiance_ms's resolution; radiance_ms + E sum_i c_i B_i(d), clamped at 0, is
+L_ms seen along a ray of direction d (field.py, ``_walk_ms``; api.md).
 """
 
 from __future__ import annotations

@@ -323,11 +323,12 @@ class GraphIntegrator(mi.SamplingIntegrator):
     def _views(self, d):
         """Per directional light: (E, the shape's basis functions at d), constant along a ray,
         where the field holds the light's ``ms_shape`` (else None)."""
-        views = []
-        for frame, E in zip(self.field.frame, self.irradiance, strict=True):
-            axes = [] if frame is None else [dr.dot(mi.Vector3f(*(float(c) for c in e)), d) for e in frame]
-            views.append(None if frame is None else (E, shape_basis(*axes)))
-        return views
+        return [
+            None
+            if frame is None
+            else (E, shape_basis(*(dr.dot(mi.Vector3f(*map(float, e)), d) for e in frame)))
+            for frame, E in zip(self.field.frame, self.irradiance, strict=True)
+        ]
 
     def _tau_light(self, k, pu, active):
         """Optical depth from points pu (in the unit cube) to directional light k: the grid's

@@ -66,7 +66,7 @@ export function decodeField(buffer) {
   // An anisotropic phase's field: how the sun's L_ms depends on the view (api.md, ms_shape)
   const shapeSpec = lights ? lights.shape : header.ms_shape || null;
   if (shapeSpec) {
-    if (!shapeSpec || typeof shapeSpec.array !== "string") throw new FieldError("the field's ms_shape names no array");
+    if (typeof shapeSpec.array !== "string") throw new FieldError("the field's ms_shape names no array");
     specs[shapeSpec.array] = { dims: 4, channels: SHAPE_TERMS };
   }
   const arrays = {};
