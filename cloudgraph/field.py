@@ -115,6 +115,11 @@ _CHUNK = {"field_tau": TAU_CHUNK, "field_lookup": LOOKUP_CHUNK, "field_ms": MS_C
 #: half voxel). Both go into the file's header, for the server's march and the page's alike.
 MARCH_MAX_DTAU = 0.5
 EDGE_VOXELS = 1.5
+
+#: An environment map's component keeps what a camera ray sees of it behind the medium, for the
+#: page: a lat-long image this many texels around and half as many from pole to pole
+#: (:func:`background_map`).
+BACKGROUND_WIDTH = 512
 #: Light march step, in field voxels (midpoint rule).
 TAU_STEP = 0.5
 #: Optical depth where the light march stops: exp(-16) ~ 1e-7 of the light is left.
@@ -308,6 +313,9 @@ def bake_field(
                 if c > 0:
                     extra[entry["tau"]] = taus[c]
             entry["ms"] = "radiance_ms" if c == 0 else f"radiance_ms_{c}"
+            if entry["type"] == "envmap":
+                entry["background"] = f"background_{c}"
+                extra[entry["background"]] = background_map(lights.envmaps[c - lights.count + len(lights.envmaps)])
             if c in shapes:
                 entry["shape"] = _shape_entry("ms_shape" if c == 0 else f"ms_shape_{c}", lights, c)
                 extra[entry["shape"]["array"]] = shapes[c]
@@ -372,6 +380,27 @@ def _lookup(inputs: dict, q: np.ndarray, node_radius: float) -> np.ndarray:
     G = grid.lookup(to_jit(mi.Point3f, q), (0.05 * node_radius) ** 2, mi.Bool(True))
     dr.eval(G)  # one kernel for the three channels
     return fill_unreached(from_jit(G), q, positions, node_G)
+
+
+def latlong_directions(width: int) -> np.ndarray:
+    """(width // 2, width, 3) unit directions at the texel centres of a lat-long image: row j
+    at theta = pi (j + 0.5) / h from +y, column i at phi = 2 pi (i + 0.5) / w, and
+    d = (sin theta sin phi, cos theta, -sin theta cos phi) (api.md, the field's ``background``)."""
+    h = width // 2
+    theta = np.pi * (np.arange(h) + 0.5) / h
+    phi = 2 * np.pi * (np.arange(width) + 0.5) / width
+    st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
+    return np.stack(np.broadcast_arrays(st * np.sin(phi), ct, -st * np.cos(phi)), axis=-1)
+
+
+def background_map(path: str, width: int = BACKGROUND_WIDTH) -> np.ndarray:
+    """(width // 2, width, 3) the radiance an environment map (scale 1) sends toward a camera
+    ray of each of :func:`latlong_directions`: Mitsuba's own lookup, so the page draws the
+    map behind the medium as the server's estimators see it."""
+    d = latlong_directions(width).reshape(-1, 3)
+    seen = envmap_seen(envmap_emitter(path), to_jit(mi.Vector3f, d))
+    dr.eval(seen)
+    return np.stack([np.array(seen[i], np.float32) for i in range(3)], axis=-1).reshape(width // 2, width, 3)
 
 
 def _shape_entry(name: str, lights: Lights, c: int) -> dict:

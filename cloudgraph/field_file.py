@@ -16,7 +16,9 @@ dilated by one voxel: empty-space skipping). What the arrays hold: field.py. A f
 ``lights`` has the header's ``lights`` in place of ``light``: per light component its type, its
 ``direction`` and ``tau`` array (directional) and its ``ms`` array, at unit intensity; the
 first component's are ``tau_light`` and ``radiance_ms``, the others' ``tau_light_K`` and
-``radiance_ms_K`` after ``majorant`` (``tau_light`` is zero without a directional light).
+``radiance_ms_K`` after ``majorant`` (``tau_light`` is zero without a directional light); an
+environment map's component also its ``background``: the array ``background_K``, (h, 2h, 3)
+the map's radiance seen along the directions of field.latlong_directions, at scale 1.
 A field of an anisotropic phase also holds, per directional light, ``ms_shape`` (header
 ``ms_shape``, or the component's ``shape``: its array ``ms_shape_K`` and its frame):
 (mz', my', mx', 14) coefficients c_i of the functions of direction of phase.shape_basis at unit
@@ -135,7 +137,7 @@ def pack_array(name: str, a: np.ndarray) -> tuple[dict, bytes, bytes]:
     """One array of a field file: (header entry without its offset, float16 bytes padded to 16,
     the same deflated)."""
     a = np.asarray(a, np.float32)
-    rgb = name.startswith(("radiance_ms", "ms_shape"))  # a scale per channel
+    rgb = name.startswith(("radiance_ms", "ms_shape", "background"))  # a scale per channel
     peak = np.abs(a).reshape(-1, a.shape[-1]).max(axis=0) if rgb else np.abs(a).max(initial=0.0)
     scale = np.where(np.asarray(peak) > 0, peak, 1.0)
     raw = np.ascontiguousarray(a / scale, "<f2").tobytes()

@@ -36,6 +36,23 @@ def box_interval(origin, dirs, lo, hi):
     return np.maximum(t0, 0.0), t1
 
 
+def latlong_lookup(image: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Bilinear lookup of a lat-long image (h, w, 3) at unit directions d (N, 3), as api.md
+    gives the field's ``background``: u = atan2(x, -z) / 2pi (wrapped), v = acos(y) / pi, values
+    at texel centres, wrapping around in u and clamped at the poles."""
+    h, w = image.shape[:2]
+    u = (np.arctan2(d[:, 0], -d[:, 2]) / (2 * np.pi)) % 1.0
+    v = np.arccos(np.clip(d[:, 1], -1, 1)) / np.pi
+    x, y = u * w - 0.5, np.clip(v * h - 0.5, 0, h - 1)
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    x1, y1 = (x0 + 1) % w, np.minimum(y0 + 1, h - 1)
+    x0 %= w
+    top = (1 - fx) * image[y0, x0] + fx * image[y0, x1]
+    bottom = (1 - fx) * image[y1, x0] + fx * image[y1, x1]
+    return (1 - fy) * top + fy * bottom
+
+
 def cube_volume(sigma: float, n: int = 8):
     """A homogeneous cube filling exactly [-1, 1]^3 (n voxels a side, half-voxel rule)."""
     s = 2.0 / n

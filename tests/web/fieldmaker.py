@@ -14,7 +14,7 @@ import math
 import numpy as np
 from scipy.ndimage import map_coordinates
 
-from ..helpers import box_interval, pixel_rays
+from ..helpers import box_interval, latlong_lookup, pixel_rays
 
 
 def make_field(shape=(24, 20, 28), unit_to_world=None, block=4, seed=1, ms_coarsen=2) -> dict:
@@ -113,9 +113,10 @@ def encode(field: dict, compress: bool = False) -> bytes:
     return gzip.compress(bytes(body)) if compress else bytes(body)
 
 
-def add_view_terms(field: dict, seed: int = 3) -> None:
+def add_view_terms(field: dict, seed: int = 3, sun: int = 0) -> None:
     """Gives ``field`` an anisotropic phase's view terms (api.md, ``ms_shape``): 14 smooth
-    channels on the radiance grid, of the size of radiance_ms, in a frame about the light."""
+    channels on the radiance grid, of the size of radiance_ms, in a frame about the light (of a
+    v1.1 field: about its directional light ``sun``)."""
     rng = np.random.default_rng(seed)
     rad = field["values"]["radiance_ms"]
     mz, my, mx = rad.shape[:3]
@@ -129,20 +130,86 @@ def add_view_terms(field: dict, seed: int = 3) -> None:
         axis=-1,
     )
     terms[..., 1] = 1.5 * lum  # P_1: the forward peak, toward the light
-    to_light = -np.asarray(field["header"]["light"]["direction"], float)
+    suns = _suns(field["header"])
+    to_light = -np.asarray(suns[sun]["direction"], float)
     ez = to_light / np.linalg.norm(to_light)
     ex = np.cross([0.0, 0.0, 1.0] if abs(ez[2]) < 0.9 else [1.0, 0.0, 0.0], ez)
     ex /= np.linalg.norm(ex)
     frame = np.stack([ex, np.cross(ez, ex), ez])
-    scale = np.abs(terms).reshape(-1, 14).max(axis=0) / 1000.0
-    field["raw"]["ms_shape"] = (terms / scale).astype(np.float16)
-    field["values"]["ms_shape"] = field["raw"]["ms_shape"].astype(np.float32) * scale.astype(np.float32)
-    field["header"]["ms_shape"] = {"array": "ms_shape", "frame": frame.tolist()}
-    field["header"]["arrays"]["ms_shape"] = {
+    name = "ms_shape" if sun == 0 else f"ms_shape_{sun}"
+    _put(field, name, terms, np.abs(terms).reshape(-1, 14).max(axis=0) / 1000.0)
+    entry = {"array": name, "frame": frame.tolist()}
+    if "lights" in field["header"]:
+        suns[sun]["shape"] = entry
+    else:
+        field["header"]["ms_shape"] = entry
+
+
+def _suns(header: dict) -> list[dict]:
+    """The field's directional lights as v1.1 components: {direction, tau[, shape]} (a v1
+    field's one light: tau_light, its ms_shape)."""
+    if "lights" in header:
+        return [c for c in header["lights"] if c["type"] == "directional"]
+    sun = {"direction": header["light"]["direction"], "tau": "tau_light"}
+    if "ms_shape" in header:
+        sun["shape"] = header["ms_shape"]
+    return [sun]
+
+
+def _put(field: dict, name: str, values: np.ndarray, scale) -> None:
+    """Stores an array of decoded ``values`` as the page sees it: float16 of values / scale."""
+    scale = np.asarray(scale, np.float32)
+    field["raw"][name] = (values / scale).astype(np.float16)
+    field["values"][name] = field["raw"][name].astype(np.float32) * scale
+    field["header"]["arrays"][name] = {
         "dtype": "float16",
-        "shape": [mz, my, mx, 14],
-        "scale": scale.tolist(),
+        "shape": list(values.shape),
+        "scale": scale.tolist() if scale.ndim else float(scale),
     }
+
+
+def add_lights(field: dict, directions, sky: bool = False, seed: int = 5, envmap: bool = False) -> None:
+    """Makes ``field`` a v1.1 field of several lights (api.md, ``lights``): the directional
+    lights ``directions`` (the way light travels; the first keeps tau_light and radiance_ms),
+    each with a tau array of its own, then a sky if ``sky``, each with its own radiance array,
+    all at unit intensity, then an environment map if ``envmap`` (its radiance array and a
+    64 x 32 lat-long background, api.md). Each tau grows away from its light, so the suns light
+    different sides."""
+    rng = np.random.default_rng(seed)
+    h, v = field["header"], field["values"]
+    nz, ny, nx = v["sigma_t"].shape
+    z, y, x = np.meshgrid(*[(np.arange(n) + 0.5) / n for n in (nz, ny, nx)], indexing="ij")
+    rad = v["radiance_ms"]
+    mz, my, mx = rad.shape[:3]
+    mzz, myy, mxx = np.meshgrid(*[(np.arange(n) + 0.5) / n for n in (mz, my, mx)], indexing="ij")
+    lights = []
+    for k, direction in enumerate(directions):
+        entry = {"type": "directional", "direction": list(map(float, direction))}
+        entry["tau"], entry["ms"] = ("tau_light", "radiance_ms") if k == 0 else (f"tau_light_{k}", f"radiance_ms_{k}")
+        if k > 0:
+            # optical depth along the light's way through the (unit) box, in the sigma > 0 body
+            dz = np.asarray(direction, float)
+            depth = 0.5 + (x - 0.5) * dz[0] + (y - 0.5) * dz[1] + (z - 0.5) * dz[2]
+            tau = (2.0 + k) * np.clip(depth, 0, None) * (v["sigma_t"] > 0) + 0.1 * (1 + k) * x
+            _put(field, entry["tau"], tau, float(tau.max()) / 1000.0)
+            a, b = rng.uniform(0.02, 0.06, 3), rng.uniform(-0.03, 0.03, 3)
+            ms = np.stack([a[c] + b[c] * (mxx, myy, mzz)[c] for c in range(3)], axis=-1)
+            _put(field, entry["ms"], ms, ms.reshape(-1, 3).max(axis=0) / 1000.0)
+        lights.append(entry)
+    if sky:
+        name = "radiance_ms_sky"
+        ms = np.stack([0.03 + 0.02 * myy, 0.035 + 0.02 * myy, 0.05 + 0.01 * mxx], axis=-1)
+        _put(field, name, ms, ms.reshape(-1, 3).max(axis=0) / 1000.0)
+        lights.append({"type": "sky", "ms": name})
+    if envmap:
+        ms = np.stack([0.02 + 0.03 * mxx, 0.03 + 0.01 * mzz, 0.02 + 0.02 * myy], axis=-1)
+        _put(field, "radiance_ms_env", ms, ms.reshape(-1, 3).max(axis=0) / 1000.0)
+        v, u = np.meshgrid((np.arange(32) + 0.5) / 32, (np.arange(64) + 0.5) / 64, indexing="ij")
+        bg = np.stack([0.5 + 0.4 * np.sin(2 * np.pi * u), 0.3 + 0.5 * v, 0.6 - 0.3 * np.cos(2 * np.pi * u) * v], -1)
+        _put(field, "background_env", bg, bg.reshape(-1, 3).max(axis=0) / 1000.0)
+        lights.append({"type": "envmap", "ms": "radiance_ms_env", "background": "background_env"})
+    del h["light"]
+    h["lights"] = lights
 
 
 def view_basis(d: np.ndarray, frame: np.ndarray) -> np.ndarray:
@@ -166,18 +233,19 @@ def _sample(grid: np.ndarray, unit: np.ndarray) -> np.ndarray:
     )
 
 
-def _tau_light(header: dict, values: dict, p: np.ndarray) -> np.ndarray:
-    """tau_light at unit points p (N, 3) as the field's header says: the grid's, or within
-    ``edge`` of where the light enters the box the integral of sigma_t to it (3 midpoints)."""
+def _tau_light(header: dict, values: dict, p: np.ndarray, sun: dict) -> np.ndarray:
+    """tau_light of directional light ``sun`` (_suns) at unit points p (N, 3) as the field's
+    header says: its grid's, or within ``edge`` of where the light enters the box the integral
+    of sigma_t to it (3 midpoints)."""
     m = np.asarray(header["unit_to_world"], float)
-    to_light = -np.asarray(header["light"]["direction"], float)
+    to_light = -np.asarray(sun["direction"], float)
     lu = np.linalg.inv(m)[:3, :3] @ (to_light / np.linalg.norm(to_light))  # unit cube per world unit
     pc = np.clip(p, 0.0, 1.0)  # a point on the box's surface counts as inside
     with np.errstate(divide="ignore", invalid="ignore"):
         te = np.where(np.abs(lu) < 1e-9, 1e30, np.maximum(-pc / lu, (1 - pc) / lu))
     t_exit = np.maximum(te.min(axis=1), 0.0)
     edge = t_exit <= header["edge"]
-    tau = _sample(values["tau_light"], p)
+    tau = _sample(values[sun["tau"]], p)
     if edge.any():
         q, t = pc[edge], t_exit[edge]
         sums = sum(_sample(values["sigma_t"], q + ((k + 0.5) / 3) * t[:, None] * lu) for k in range(3))
@@ -191,22 +259,45 @@ def hg4pi(g, mu):
 
 
 def reference_render(
-    field: dict, camera: dict, exposure: float = 0.0, substeps: int = 4, lobes=((1.0, 0.0),)
+    field: dict,
+    camera: dict,
+    exposure: float = 0.0,
+    substeps: int = 4,
+    lobes=((1.0, 0.0),),
+    mix: dict | None = None,
 ) -> np.ndarray:
     """The field's image (H, W, 3) as 8-bit sRGB, by the spec's march with segments of
     step / ``substeps`` at their midpoints (converges to the same integral as any jitter).
     ``lobes``: (weight, g) of the phase; single scattering is weighted by 4pi p(mu) per ray,
-    mu = d . (towards the light) (1 for the isotropic default)."""
+    mu = d . (towards the light) (1 for the isotropic default). A v1.1 field (add_lights) is
+    drawn in ``mix`` ({"suns": [RGB irradiance per directional light], "sky": RGB, "envmaps":
+    [RGB scale per map]}): each component's radiance array times its intensity, each sun's
+    single scattering, and the sky and the maps' backgrounds seen behind the medium."""
     h = field["header"]
     v = field["values"]
+    suns = _suns(h)
+    if "lights" in h:
+        E = [np.asarray(e, float) for e in mix["suns"]]
+        sky = np.asarray(mix.get("sky", [0, 0, 0]), float)
+        suns_e, maps_e = iter(E), iter(np.asarray(e, float) for e in mix.get("envmaps", []))
+        kinds = {"sky": lambda: sky, "directional": lambda: next(suns_e), "envmap": lambda: next(maps_e)}
+        weights = [kinds[c["type"]]() for c in h["lights"]]
+        maps = [(w, v[c["background"]]) for w, c in zip(weights, h["lights"], strict=True) if c["type"] == "envmap"]
+        rad_grid = sum(w * v[c["ms"]] for w, c in zip(weights, h["lights"], strict=True))
+        if not any(c["type"] == "sky" for c in h["lights"]):
+            sky = np.zeros(3)
+    else:
+        E, sky, rad_grid, maps = [np.asarray(h["light"]["irradiance"], float)], np.zeros(3), v["radiance_ms"], []
     m = np.asarray(h["unit_to_world"], float)
     inv = np.linalg.inv(m)
     d = pixel_rays(
         camera["eye"], camera["target"], camera["up"], camera["fov"], camera["width"], camera["height"]
     )
     d = d.reshape(-1, 3)
-    to_light = -np.asarray(h["light"]["direction"], float)
-    factor = sum(w * hg4pi(g, d @ (to_light / np.linalg.norm(to_light))) for w, g in lobes)
+    factors = []
+    for sun in suns:
+        to_light = -np.asarray(sun["direction"], float)
+        factors.append(sum(w * hg4pi(g, d @ (to_light / np.linalg.norm(to_light))) for w, g in lobes))
     o_u = inv[:3, :3] @ np.asarray(camera["eye"], float) + inv[:3, 3]
     d_u = d @ inv[:3, :3].T
     t0, t1 = box_interval(o_u, d_u, [0, 0, 0], [1, 1, 1])
@@ -216,8 +307,8 @@ def reference_render(
     dt = np.where(hit, (t1 - t0) / np.maximum(n, 1), 0)
     L = np.zeros((len(d), 3))
     Tr = np.ones(len(d))
-    direct = np.asarray(h["light"]["irradiance"]) / (4 * math.pi)
-    basis = view_basis(d, h["ms_shape"]["frame"]) if "ms_shape" in h else None
+    direct = [e / (4 * math.pi) for e in E]
+    bases = [view_basis(d, sun["shape"]["frame"]) if "shape" in sun else None for sun in suns]
     albedo = np.asarray(h["albedo"])
     for k in range(int(n.max(initial=0))):
         live = k < n
@@ -225,15 +316,21 @@ def reference_render(
         t = t0[idx] + (k + 0.5) * dt[idx]
         p = o_u + t[:, None] * d_u[idx]
         s = _sample(v["sigma_t"], p)
-        tau = _tau_light(h, v, p)
-        rad = _sample(v["radiance_ms"], p)
-        if basis is not None:  # E sum_i c_i B_i(d), L_ms clamped at 0
-            view = (_sample(v["ms_shape"], p) * basis[idx]).sum(axis=1)
-            rad = np.maximum(rad + 4 * math.pi * direct * view[:, None], 0.0)
+        rad = _sample(rad_grid, p)
+        if any(b is not None for b in bases):  # per sun E sum_i c_i B_i(d), L_ms clamped at 0
+            for sun, basis, e in zip(suns, bases, direct, strict=True):
+                if basis is not None:
+                    view = (_sample(v[sun["shape"]["array"]], p) * basis[idx]).sum(axis=1)
+                    rad = rad + 4 * math.pi * e * view[:, None]
+            rad = np.maximum(rad, 0.0)
         a = np.exp(-s * dt[idx])
-        L_in = direct * (factor[idx] * np.exp(-tau))[:, None] + rad  # E p exp(-tau) + L_ms
+        L_in = rad.copy()  # sum over suns E p exp(-tau) + L_ms
+        for sun, e, factor in zip(suns, direct, factors, strict=True):
+            L_in += e * (factor[idx] * np.exp(-_tau_light(h, v, p, sun)))[:, None]
         L[idx] += (Tr[idx] * (1 - a))[:, None] * albedo * L_in
         Tr[idx] *= a
+    behind = sky + sum((w * latlong_lookup(bg, d) for w, bg in maps), np.zeros((len(d), 3)))
+    L += Tr[:, None] * behind  # the sky and the maps behind the medium
     x = np.clip(L * 2.0**exposure, 0, 1)
     srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
     return np.round(srgb * 255).reshape(camera["height"], camera["width"], 3)

@@ -14,13 +14,15 @@ from .fieldmaker import encode, make_field, reference_render, rel_mae
 
 sync_api = pytest.importorskip("playwright.sync_api")
 
-RENDER_JS = """async ({ b64, cams, exposure, fast }) => {
+RENDER_JS = """async ({ b64, cams, exposure, fast, mix, remix }) => {
   const { decodeField } = await import('/js/field.js');
   const { GLView } = await import('/js/glview.js');
   const bytes = Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
   const field = decodeField(bytes.buffer);
   const view = new GLView(document.createElement('canvas'));
+  if (mix) view.setMix(mix);  // the lights' intensities of a v1.1 field: before its upload
   view.setField(field);
+  if (remix) view.setMix(remix);  // and after it (a re-mix)
   return cams.map((cam) => Array.from(view.readImage(cam, { exposure, fast }).data));
 }"""
 
@@ -54,9 +56,10 @@ def camera(eye, target, size=48, fov=40.0):
     }
 
 
-def render(page, field, cams, exposure=0.0, fast=False):
+def render(page, field, cams, exposure=0.0, fast=False, mix=None, remix=None):
     b64 = base64.b64encode(encode(field)).decode()
-    out = page.evaluate(RENDER_JS, {"b64": b64, "cams": cams, "exposure": exposure, "fast": fast})
+    args = {"b64": b64, "cams": cams, "exposure": exposure, "fast": fast, "mix": mix, "remix": remix}
+    out = page.evaluate(RENDER_JS, args)
     return [
         np.asarray(px, float).reshape(c["height"], c["width"], 4)[..., :3]
         for px, c in zip(out, cams, strict=True)
@@ -145,8 +148,8 @@ def test_field_beyond_device_limits_is_refused_in_words(page):
         const { GLView } = await import('/js/glview.js');
         const view = new GLView(document.createElement('canvas'));
         const grid = (n) => ({ shape: [4, 4, n] });
-        const field = (n) => ({ arrays: { sigma_t: grid(n), tau_light: grid(n),
-          radiance_ms: { shape: [2, 2, 2, 3] }, majorant: { shape: [1, 1, 1] } } });
+        const field = (n) => ({ suns: [{ tau: 'tau_light', shape: null }], arrays: { sigma_t: grid(n),
+          tau_light: grid(n), radiance_ms: { shape: [2, 2, 2, 3] }, majorant: { shape: [1, 1, 1] } } });
         return { max: view.maxSize, ok: view.tooLarge(field(view.maxSize)),
                  big: view.tooLarge(field(view.maxSize + 1)), bytes: view.tooLarge(field(64), 100) };
       }"""

@@ -13,6 +13,11 @@ export function $(selector, root = document) {
   return el;
 }
 
+/** Every element under ``root`` that matches ``selector``, as an array. */
+export function $$(selector, root = document) {
+  return Array.from(root.querySelectorAll(selector));
+}
+
 /** An element with properties/attributes and children (strings become text nodes). */
 export function h(tag, props = {}, ...children) {
   const el = document.createElement(tag);

@@ -60,14 +60,16 @@ export function decodeField(buffer) {
     throw new FieldError(`unsupported field format ${JSON.stringify(header.format)} version ${header.version}`);
   }
   const unitToWorld = vec((header.unit_to_world || []).flat(), 16, "unit_to_world");
-  const lights = header.lights ? lightComponents(header.lights) : null;
+  const lights = header.lights ? lightComponents(header.lights) : v1Light(header);
   const specs = { ...ARRAYS };
-  if (lights && lights.sky) specs[lights.sky] = ARRAYS.radiance_ms;
-  // An anisotropic phase's field: how the sun's L_ms depends on the view (api.md, ms_shape)
-  const shapeSpec = lights ? lights.shape : header.ms_shape || null;
-  if (shapeSpec) {
-    if (typeof shapeSpec.array !== "string") throw new FieldError("the field's ms_shape names no array");
-    specs[shapeSpec.array] = { dims: 4, channels: SHAPE_TERMS };
+  for (const c of lights.components) {
+    specs[c.ms] = ARRAYS.radiance_ms;
+    if (c.background) specs[c.background] = { dims: 3, channels: 3 }; // an environment's, lat-long
+  }
+  for (const sun of lights.suns) {
+    specs[sun.tau] = ARRAYS.tau_light;
+    // An anisotropic phase's field: how the sun's L_ms depends on the view (api.md, ms_shape)
+    if (sun.shape) specs[sun.shape.array] = { dims: 4, channels: SHAPE_TERMS };
   }
   const arrays = {};
   for (const [name, spec] of Object.entries(specs)) {
@@ -78,7 +80,7 @@ export function decodeField(buffer) {
     if (!Array.isArray(shape) || shape.length !== spec.dims || !shape.every((n) => Number.isInteger(n) && n > 0)) {
       throw new FieldError(`${name}: bad shape ${JSON.stringify(shape)}`);
     }
-    if (spec.channels && shape[3] !== spec.channels) throw new FieldError(`${name}: expected ${spec.channels} channels`);
+    if (spec.channels && shape[spec.dims - 1] !== spec.channels) throw new FieldError(`${name}: expected ${spec.channels} channels`);
     const count = shape.reduce((p, n) => p * n, 1);
     if (!Number.isInteger(a.offset) || a.offset % 2 || a.offset < 12 + headerLength || a.offset + 2 * count > buffer.byteLength) {
       throw new FieldError(`${name}: its bytes lie outside the body`);
@@ -98,23 +100,38 @@ export function decodeField(buffer) {
   const maxDtau = Number(header.max_dtau);
   const edge = Number(header.edge);
   if (!(maxDtau > 0) || !(edge >= 0)) throw new FieldError("the field's header has no valid max_dtau or edge");
-  if (lights && lights.sky && arrays[lights.sky].shape.join() !== arrays.radiance_ms.shape.join()) {
-    throw new FieldError("the sky's radiance differs in shape from radiance_ms");
+  const backgrounds = lights.components.filter((c) => c.background).map((c) => arrays[c.background].shape);
+  for (const c of lights.components) {
+    if (arrays[c.ms].shape.join() !== arrays.radiance_ms.shape.join()) {
+      throw new FieldError(`${c.ms} differs in shape from radiance_ms`);
+    }
   }
-  // A v1.1 field holds its lights at unit intensity (the page mixes them, setMix); a v1 one
-  // its light at its irradiance
-  const light = lights ? { direction: lights.direction, irradiance: [1, 1, 1] } : header.light || {};
+  if (backgrounds.some((b) => b.join() !== backgrounds[0].join() || b[1] !== 2 * b[0])) {
+    throw new FieldError("the environments' backgrounds are not lat-long images of one size");
+  }
+  for (const sun of lights.suns) {
+    if (arrays[sun.tau].shape.join() !== arrays.sigma_t.shape.join()) throw new FieldError(`${sun.tau} differs in shape from sigma_t`);
+  }
   return {
     header,
     unitToWorld,
     worldToUnit: invertAffine(unitToWorld),
     worldBbox: header.world_bbox,
-    light: { direction: vec(light.direction, 3, "light.direction"), irradiance: vec(light.irradiance, 3, "light.irradiance") },
-    // v1.1: { sun: whether the first component is a directional light, sky: its radiance
-    // array's name or null }; null for a v1 field
-    lights,
-    // { array: its name, frame: 9 numbers, rows e_x, e_y, e_z (e_z toward the light) } or null
-    shape: shapeSpec ? { array: shapeSpec.array, frame: vec((shapeSpec.frame || []).flat(), 9, "ms_shape frame") } : null,
+    // A v1.1 field holds its lights at unit intensity (the page mixes them, glview's setMix); a
+    // v1 one its light at its irradiance
+    unit: !!header.lights,
+    // the directional lights: { direction (the way light travels), tau: its tau array's name,
+    // shape: null or { array, frame: 9 numbers, rows e_x, e_y, e_z (e_z toward the light) } }
+    suns: lights.suns.map((s) => ({
+      direction: vec(s.direction, 3, "light.direction"),
+      tau: s.tau,
+      shape: s.shape ? { array: s.shape.array, frame: vec((s.shape.frame || []).flat(), 9, "ms_shape frame") } : null,
+    })),
+    // every light component in the header's order: { type, ms: its radiance array's name,
+    // background: an environment map's lat-long background array's name, else null }
+    components: lights.components,
+    // a v1 field's light: { irradiance }
+    irradiance: lights.irradiance ? vec(lights.irradiance, 3, "light.irradiance") : null,
     albedo: vec(header.albedo, 3, "albedo"),
     step,
     maxDtau,
@@ -124,35 +141,57 @@ export function decodeField(buffer) {
   };
 }
 
+/** The most lights, and so directional lights, a field has (api.md). */
+export const MAX_LIGHTS = 8;
+export const MAX_SUNS = MAX_LIGHTS;
+
+/** A v1 field's one light as lightComponents' object. */
+function v1Light(header) {
+  const light = header.light || {};
+  const shape = header.ms_shape || null;
+  if (shape && typeof shape.array !== "string") throw new FieldError("the field's ms_shape names no array");
+  return {
+    suns: [{ direction: light.direction, tau: "tau_light", shape }],
+    components: [{ type: "directional", ms: "radiance_ms" }],
+    irradiance: light.irradiance,
+  };
+}
+
 /**
- * The light components of a v1.1 field's header (api.md): at most one directional light (the
- * first component, with tau_light and radiance_ms) and a sky. Throws FieldError otherwise.
+ * The light components of a v1.1 field's header (api.md): directional lights, each with its
+ * tau array (the first's tau_light), a sky and environment maps (each with its background),
+ * each with its radiance array (the first component's radiance_ms). Throws FieldError
+ * otherwise.
  */
 function lightComponents(list) {
-  if (!Array.isArray(list) || !list.length) throw new FieldError("the field's header has no valid lights");
-  const suns = list.filter((c) => c && c.type === "directional");
-  const skies = list.filter((c) => c && c.type === "sky");
-  if (list.some((c) => c && c.type === "envmap")) {
-    throw new FieldError("the real-time view does not draw environment maps: render this cache on the server");
+  if (!Array.isArray(list) || !list.length || list.length > MAX_LIGHTS) {
+    throw new FieldError("the field's header has no valid lights");
   }
-  if (suns.length + skies.length !== list.length) throw new FieldError("the field's header has a light of unknown type");
-  if (suns.length > 1) {
-    throw new FieldError(`the real-time view draws one directional light, and this cache has ${suns.length}: render it on the server`);
+  if (!list.every((c) => c && ["directional", "sky", "envmap"].includes(c.type))) {
+    throw new FieldError("the field's header has a light of unknown type");
   }
-  const sun = suns[0];
-  if (sun && (list[0] !== sun || sun.tau !== "tau_light" || sun.ms !== "radiance_ms")) {
-    throw new FieldError("the field's directional light is not its first component");
+  if (list.some((c) => c.type === "envmap" && typeof c.background !== "string")) {
+    throw new FieldError("the field keeps no background of its environment map: render this cache on the server");
   }
-  const sky = skies[0] || null;
-  if (sky && (typeof sky.ms !== "string" || (sun ? sky.ms === "radiance_ms" : sky.ms !== "radiance_ms"))) {
-    throw new FieldError("the field's sky has no radiance array of its own");
+  const names = list.map((c) => c.ms);
+  if (names[0] !== "radiance_ms" || !names.every((n) => typeof n === "string") || new Set(names).size !== names.length) {
+    throw new FieldError("the field's lights do not each name a radiance array of their own");
+  }
+  const suns = list.filter((c) => c.type === "directional");
+  if (suns.length > MAX_SUNS || list.filter((c) => c.type === "sky").length > 1) {
+    throw new FieldError("the field's header has too many lights");
+  }
+  const taus = suns.map((s) => s.tau);
+  if (suns.length && (taus[0] !== "tau_light" || list[0] !== suns[0] || !taus.every((n) => typeof n === "string") || new Set(taus).size !== taus.length)) {
+    throw new FieldError("the field's directional lights do not each name a tau array of their own");
+  }
+  for (const s of suns) {
+    if (s.shape && typeof s.shape.array !== "string") throw new FieldError("a directional light's shape names no array");
   }
   return {
-    sun: !!sun,
-    shape: (sun && sun.shape) || null,
-    // without a sun the sky is the first component: its radiance is radiance_ms itself
-    sky: sky ? sky.ms : null,
-    direction: sun ? sun.direction : [0, -1, 0],
+    suns: suns.map((s) => ({ direction: s.direction, tau: s.tau, shape: s.shape || null })),
+    components: list.map((c) => ({ type: c.type, ms: c.ms, background: c.background || null })),
+    irradiance: null,
   };
 }
 

@@ -1,15 +1,17 @@
 // Texture data made in the page from a decoded field (field.js), for glview.js: sigma_t and
-// tau_light interleaved into one RG texture, and the moving camera's (sigma_t, L_in) texture.
+// tau_light interleaved into one RG texture, the lights' radiance arrays mixed into one, and
+// the moving camera's (sigma_t, L_in) texture.
 
 import { halfToFloat } from "./field.js";
 
-/** Two float16 arrays of one grid as one RG array (a, b alternating). */
-export function interleaved(a, b) {
-  const out = new Uint16Array(2 * a.length);
-  for (let i = 0; i < a.length; i++) {
-    out[2 * i] = a[i];
-    out[2 * i + 1] = b[i];
-  }
+/** Float16 arrays of one grid as one array of ``channels`` per texel (the arrays in turn, zero
+ * past the last). */
+export function interleaved(arrays, channels = arrays.length) {
+  const n = arrays[0].length;
+  const out = new Uint16Array(channels * n);
+  arrays.forEach((a, c) => {
+    for (let i = 0; i < n; i++) out[channels * i + c] = a[i];
+  });
   return out;
 }
 
@@ -43,22 +45,65 @@ function axisWeights(n, m) {
 }
 
 /**
+ * A sum of float16 RGB arrays of one grid, each times an RGB weight: ``terms`` [{ a: a decoded
+ * array ({ data, scale }), e: [3] }]. Returns { data: Float32Array RGB divided by scale, scale:
+ * [3] the peak per channel (float16 holds the data whatever the weights) }.
+ */
+function weightedSum(terms) {
+  const n = terms[0].a.data.length;
+  const sum = new Float32Array(n);
+  for (const { a, e } of terms) {
+    const w = a.scale.map((s, ch) => s * e[ch]);
+    if (w.every((v) => v === 0)) continue;
+    const d = a.data;
+    for (let i = 0; i < n; i += 3) {
+      sum[i] += w[0] * HALF[d[i]];
+      sum[i + 1] += w[1] * HALF[d[i + 1]];
+      sum[i + 2] += w[2] * HALF[d[i + 2]];
+    }
+  }
+  const scale = [0, 1, 2].map((ch) => {
+    let peak = 0;
+    for (let i = ch; i < n; i += 3) peak = Math.max(peak, Math.abs(sum[i]));
+    return peak > 0 ? peak : 1;
+  });
+  for (let i = 0; i < n; i++) sum[i] /= scale[i % 3];
+  return { data: sum, scale };
+}
+
+/**
+ * L_ms in the lights' intensities: each component's radiance array (field.components) times its
+ * RGB intensity (``intensities``, in the same order), summed (weightedSum's { data, scale }, over
+ * the radiance grid).
+ */
+export function mixedRadiance(field, intensities) {
+  return weightedSum(field.components.map((c, k) => ({ a: field.arrays[c.ms], e: intensities[k] })));
+}
+
+/**
+ * What a camera ray sees of the environment maps behind the medium: each map's lat-long
+ * background (field.components' ``background``) times its intensity, summed (weightedSum's
+ * { data, scale } and the image's width and height), or null without a map.
+ */
+export function mixedBackground(field, intensities) {
+  const terms = field.components.flatMap((c, k) => (c.background ? [{ a: field.arrays[c.background], e: intensities[k] }] : []));
+  if (!terms.length) return null;
+  const [height, width] = terms[0].a.shape;
+  return { ...weightedSum(terms), width, height };
+}
+
+/**
  * The moving camera's texture: per density voxel (sigma_t / scale, L_in r, g, b) with
- * L_in = E exp(-tau_light) / 4pi + radiance_ms (resampled to the density grid), and a v1.1
- * field's sky radiance array added. ``mix`` (glview.js): { direct: E / 4pi, radScale: the
- * scale of radiance_ms in this light, sky: null or { data, scale } }. Float32 RGBA.
+ * L_in = sum over suns E exp(-tau_light) / 4pi + L_ms (resampled to the density grid).
+ * ``mix`` (glview.js): { direct: per sun E / 4pi, ms: mixedRadiance's }. Float32 RGBA.
  */
 export function packedField(field, mix) {
-  const { sigma_t, tau_light, radiance_ms } = field.arrays;
+  const { sigma_t, radiance_ms } = field.arrays;
   const [nz, ny, nx] = sigma_t.shape;
   const [mz, my, mx] = radiance_ms.shape;
-  const [ex, ey, ez] = mix.direct;
-  const [sr, sg, sb] = mix.radScale;
-  const tauScale = Number(tau_light.scale);
-  const rad = radiance_ms.data;
-  const sky = mix.sky ? mix.sky.data : null;
-  const [kr, kg, kb] = mix.sky ? mix.sky.scale : [0, 0, 0];
-  const q = [0, 0, 0]; // the sky's, resampled
+  const taus = field.suns.map((s) => field.arrays[s.tau]);
+  const rad = mix.ms.data;
+  const [sr, sg, sb] = mix.ms.scale;
   const X = axisWeights(nx, mx);
   const Y = axisWeights(ny, my);
   const Z = axisWeights(nz, mz);
@@ -79,21 +124,25 @@ export function packedField(field, mix) {
         const wx = X.w[i];
         const a = X.i0[i];
         const b = X.i1[i];
-        const resample = (src, ch) => {
-          const at = (row, col) => HALF[src[3 * (row + col) + ch]];
+        for (let ch = 0; ch < 3; ch++) {
+          const at = (row, col) => rad[3 * (row + col) + ch];
           const y0 = (1 - wz) * ((1 - wx) * at(r00, a) + wx * at(r00, b)) + wz * ((1 - wx) * at(r10, a) + wx * at(r10, b));
           const y1 = (1 - wz) * ((1 - wx) * at(r01, a) + wx * at(r01, b)) + wz * ((1 - wx) * at(r11, a) + wx * at(r11, b));
-          return (1 - wy) * y0 + wy * y1;
-        };
-        for (let ch = 0; ch < 3; ch++) {
-          c[ch] = resample(rad, ch);
-          q[ch] = sky ? resample(sky, ch) : 0;
+          c[ch] = (1 - wy) * y0 + wy * y1;
         }
-        const direct = Math.exp(-tauScale * HALF[tau_light.data[v]]);
+        let er = sr * c[0];
+        let eg = sg * c[1];
+        let eb = sb * c[2];
+        for (let s = 0; s < taus.length; s++) {
+          const direct = Math.exp(-Number(taus[s].scale) * HALF[taus[s].data[v]]);
+          er += mix.direct[s][0] * direct;
+          eg += mix.direct[s][1] * direct;
+          eb += mix.direct[s][2] * direct;
+        }
         out[4 * v] = HALF[sigma_t.data[v]];
-        out[4 * v + 1] = ex * direct + sr * c[0] + kr * q[0];
-        out[4 * v + 2] = ey * direct + sg * c[1] + kg * q[1];
-        out[4 * v + 3] = ez * direct + sb * c[2] + kb * q[2];
+        out[4 * v + 1] = er;
+        out[4 * v + 2] = eg;
+        out[4 * v + 3] = eb;
       }
     }
   }

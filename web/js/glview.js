@@ -1,8 +1,8 @@
 // The WebGL2 renderer of a radiance field: 3D textures on the GPU, one draw per frame, and a
 // read-back of an image at a given size for comparisons. Knows nothing of the DOM around it.
 
-import { fragmentShader, VERTEX } from "./shaders.js";
-import { channelGroup, interleaved, packedField } from "./fieldtex.js";
+import { fragmentShader, tauTextures, textureUnits, VERTEX } from "./shaders.js";
+import { channelGroup, interleaved, mixedBackground, mixedRadiance, packedField } from "./fieldtex.js";
 import { SHAPE_TERMS } from "./field.js";
 import { linearToSrgb8, srgbToLinear } from "./imagemath.js";
 import { cross, normalize, sub } from "./camera.js";
@@ -31,38 +31,35 @@ export function cameraBasis(cam) {
   return { forward, right, up };
 }
 
-/** A v1.1 field's sky radiance array beside a sun's radiance_ms, or null. */
-function skyArray(field) {
-  const l = field.lights;
-  return l && l.sun && l.sky ? field.arrays[l.sky] : null;
+/**
+ * A field in a light: { suns: per directional light its RGB irradiance, components: per light
+ * component (field.components) the intensity its arrays are scaled by, sky: the sky's radiance
+ * seen behind the medium }. A v1 field is in its own light; a v1.1 one (unit components) in
+ * ``mix`` ({ suns: [[3] per directional light], sky: [3], envmaps: [[3] scale per map] }; none
+ * given: each sun and map 1, no sky; a sun or map past the mix's list is off).
+ */
+export function lightsOf(field, mix) {
+  if (!field.unit) return { suns: [field.irradiance], components: [[1, 1, 1]], sky: [0, 0, 0] };
+  const nth = (list, i) => (mix ? (list && list[i]) || [0, 0, 0] : [1, 1, 1]);
+  const sunE = field.suns.map((_, i) => nth(mix && mix.suns, i));
+  const sky = (mix && mix.sky) || [0, 0, 0];
+  let sun = 0;
+  let map = 0;
+  const components = field.components.map((c) => {
+    if (c.type === "sky") return sky;
+    return c.type === "envmap" ? nth(mix && mix.envmaps, map++) : sunE[sun++];
+  });
+  return { suns: sunE, components, sky: field.components.some((c) => c.type === "sky") ? sky : [0, 0, 0] };
 }
 
-/**
- * A field in a light: the shader's uniforms { direct (E / 4pi), radScale (radiance_ms's scale
- * times its component's intensity), skyRadScale, background (the sky behind the medium) } and
- * packedField's mix. A v1 field is in its own light; a v1.1 one (unit components) in ``mix``
- * ({ sun, sky }: RGB intensities; none given: 1 and 0).
- */
+/** The shader's uniforms of a field in a light (lightsOf) and its mixed L_ms (fieldtex.js). */
 function mixOf(field, mix) {
-  const scale = field.arrays.radiance_ms.scale;
-  const l = field.lights;
-  if (!l) {
-    const direct = field.light.irradiance.map((e) => e / (4 * Math.PI));
-    const uniforms = { direct, radScale: scale, skyRadScale: [0, 0, 0], background: [0, 0, 0] };
-    return { uniforms, packed: { direct, radScale: scale, sky: null } };
-  }
-  const sun = l.sun ? (mix && mix.sun) || [1, 1, 1] : [0, 0, 0];
-  const skyE = l.sky ? (mix && mix.sky) || [0, 0, 0] : [0, 0, 0];
-  const first = l.sun ? sun : skyE; // the first component's intensity (radiance_ms)
-  const sky = skyArray(field);
-  const uniforms = {
-    direct: sun.map((e) => e / (4 * Math.PI)),
-    radScale: scale.map((s, c) => s * first[c]),
-    skyRadScale: sky ? sky.scale.map((s, c) => s * skyE[c]) : [0, 0, 0],
-    background: skyE,
-  };
-  const packed = { direct: uniforms.direct, radScale: uniforms.radScale, sky: sky && { data: sky.data, scale: uniforms.skyRadScale } };
-  return { uniforms, packed };
+  const lights = lightsOf(field, mix);
+  const ms = mixedRadiance(field, lights.components);
+  const env = mixedBackground(field, lights.components);
+  const direct = lights.suns.map((E) => E.map((e) => e / (4 * Math.PI)));
+  const uniforms = { direct, radScale: ms.scale, background: lights.sky, envScale: env ? env.scale : [0, 0, 0] };
+  return { ms, env, direct, uniforms };
 }
 
 export class GLView {
@@ -80,7 +77,8 @@ export class GLView {
     });
     if (!gl) throw new Error(webgl2Missing(document.createElement("canvas")) || "WebGL2 is unavailable");
     this.gl = gl;
-    this.programs = { exact: this.link(false), fast: this.link(true) };
+    this.programs = new Map(); // by layout (program())
+    this.program({ packed: false, suns: 1, shaped: [] }); // a shader that does not build fails here
     this.vao = gl.createVertexArray();
     this.textures = null;
     this.field = null;
@@ -88,12 +86,19 @@ export class GLView {
     this.maxSize = gl.getParameter(gl.MAX_3D_TEXTURE_SIZE);
   }
 
-  /** The ray-march program and its uniform locations. */
-  link(packed) {
+  /** The ray-march program of a layout { packed, suns, shaped } (shaders.js) and its uniform
+   * locations, linked once per layout (a new field may need another; the camera never does). */
+  program(layout) {
+    const id = JSON.stringify(layout);
+    if (!this.programs.has(id)) this.programs.set(id, this.link(layout));
+    return this.programs.get(id);
+  }
+
+  link(layout) {
     const gl = this.gl;
     const program = gl.createProgram();
     gl.attachShader(program, compile(gl, gl.VERTEX_SHADER, VERTEX));
-    gl.attachShader(program, compile(gl, gl.FRAGMENT_SHADER, fragmentShader({ packed })));
+    gl.attachShader(program, compile(gl, gl.FRAGMENT_SHADER, fragmentShader(layout)));
     gl.linkProgram(program);
     if (!gl.getProgramParameter(program, gl.LINK_STATUS) && !gl.isContextLost()) {
       throw new Error(`the ray-march shader does not link: ${gl.getProgramInfoLog(program)}`);
@@ -117,37 +122,79 @@ export class GLView {
         return `the field (${nx}×${ny}×${nz}) exceeds this device's 3D texture limit of ${this.maxSize}`;
       }
     }
+    const shaped = shapedSuns(field).length;
+    const units = textureUnits(field.suns.length, shaped) + (hasEnv(field) ? 1 : 0);
+    const have = this.gl.getParameter(this.gl.MAX_TEXTURE_IMAGE_UNITS);
+    if (units > have) {
+      return `its ${shaped} lights' view terms need ${units} texture units and this device has ${have}: render it on the server`;
+    }
     const bytes = GLView.textureBytes(field);
     if (bytes > maxBytes) return `the field needs ${(bytes / 2 ** 20).toFixed(0)} MiB of textures`;
     return "";
   }
 
   /**
-   * GPU bytes of a field's textures: RG16F density + tau, RGBA16F-padded radiance, R16F
-   * majorant, and the RGBA16F (sigma_t, L_in) texture of the moving camera with its mipmaps.
+   * GPU bytes of a field's textures: RG16F density + tau, RGBA16F textures of the other suns'
+   * tau, RGBA16F-padded radiance, R16F majorant, the RGBA16F (sigma_t, L_in) texture of the
+   * moving camera with its mipmaps, four RGBA16F textures of view terms a shaped sun, and an
+   * RGBA16F-padded lat-long background of the environment maps.
    */
   static textureBytes(field) {
     const count = (a) => a.shape[0] * a.shape[1] * a.shape[2];
     const { sigma_t, radiance_ms, majorant } = field.arrays;
-    const skies = skyArray(field) ? 2 : 1; // a v1.1 field's sky: a second radiance texture
-    // an anisotropic phase's view terms: RGBA16F textures of four channels each
-    const shape = field.shape ? 8 * Math.ceil(SHAPE_TERMS / 4) * count(field.arrays[field.shape.array]) : 0;
-    return Math.round((4 + (8 * 8) / 7) * count(sigma_t) + 8 * skies * count(radiance_ms) + 2 * count(majorant) + shape);
+    const density = 4 + (8 * 8) / 7 + 8 * tauTextures(field.suns.length);
+    const shape = shapedSuns(field).reduce((n, k) => n + 8 * Math.ceil(SHAPE_TERMS / 4) * count(field.arrays[field.suns[k].shape.array]), 0);
+    const env = field.components.find((c) => c.background);
+    const background = env ? 8 * field.arrays[env.background].shape[0] * field.arrays[env.background].shape[1] : 0;
+    return Math.round(density * count(sigma_t) + 8 * count(radiance_ms) + 2 * count(majorant) + shape + background);
   }
 
   /**
-   * The lights' intensities for a v1.1 field (held at unit intensity): { sun: [3] irradiance,
-   * sky: [3] radiance }. Re-draws need no request: uniforms, and the moving camera's texture
-   * made again. A v1 field keeps its own light.
+   * The lights' intensities for a v1.1 field (held at unit intensity): { suns: [[3] irradiance
+   * per directional light], sky: [3] radiance }. Re-draws need no request: uniforms, L_ms mixed
+   * again and the moving camera's texture made again. A v1 field keeps its own light.
    */
   setMix(mix) {
     this.mix = mix;
     if (!this.unitField || !this.textures) return;
     const m = mixOf(this.unitField, mix);
     Object.assign(this.field, m.uniforms);
-    const packed = this.makePacked(this.unitField.arrays.sigma_t, packedField(this.unitField, m.packed));
-    this.gl.deleteTexture(this.textures.packed);
-    this.textures.packed = packed;
+    const rad = this.makeTexture(this.unitField.arrays.radiance_ms, this.gl.RGB16F, this.gl.RGB, m.ms.data, this.gl.LINEAR, this.gl.FLOAT);
+    const packed = this.makePacked(this.unitField.arrays.sigma_t, packedField(this.unitField, m));
+    const env = m.env && this.makeBackground(m.env);
+    for (const name of ["rad", "packed", "env"]) if (this.textures[name]) this.gl.deleteTexture(this.textures[name]);
+    Object.assign(this.textures, { rad, packed, env });
+  }
+
+  /** The environment maps' lat-long background (mixedBackground's): RGB16F, wrapping around
+   * in u, clamped at the poles. */
+  makeBackground(env) {
+    const gl = this.gl;
+    const t = gl.createTexture();
+    gl.bindTexture(gl.TEXTURE_2D, t);
+    gl.pixelStorei(gl.UNPACK_ALIGNMENT, 4);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGB16F, env.width, env.height, 0, gl.RGB, gl.FLOAT, env.data);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.REPEAT);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
+    return t;
+  }
+
+  /** A 3D texture of ``data`` (float16 bits, or floats when type is gl.FLOAT) over arr's grid. */
+  makeTexture(arr, internal, format, data, filter, type = this.gl.HALF_FLOAT) {
+    const gl = this.gl;
+    const [nz, ny, nx] = arr.shape;
+    const t = gl.createTexture();
+    gl.bindTexture(gl.TEXTURE_3D, t);
+    gl.pixelStorei(gl.UNPACK_ALIGNMENT, type === gl.FLOAT ? 4 : 1);
+    gl.texImage3D(gl.TEXTURE_3D, 0, internal, nx, ny, nz, 0, format, type, data);
+    gl.texParameteri(gl.TEXTURE_3D, gl.TEXTURE_MIN_FILTER, filter);
+    gl.texParameteri(gl.TEXTURE_3D, gl.TEXTURE_MAG_FILTER, filter);
+    for (const w of [gl.TEXTURE_WRAP_S, gl.TEXTURE_WRAP_T, gl.TEXTURE_WRAP_R]) {
+      gl.texParameteri(gl.TEXTURE_3D, w, gl.CLAMP_TO_EDGE);
+    }
+    return t;
   }
 
   /** The moving camera's RGBA16F (sigma_t, L_in) texture, with mipmaps where the device can. */
@@ -180,34 +227,30 @@ export class GLView {
    */
   setField(field) {
     const gl = this.gl;
-    const { sigma_t, tau_light, radiance_ms, majorant } = field.arrays;
-    const make = (arr, internal, format, data, filter) => {
-      const [nz, ny, nx] = arr.shape;
-      const t = gl.createTexture();
-      gl.bindTexture(gl.TEXTURE_3D, t);
-      gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
-      gl.texImage3D(gl.TEXTURE_3D, 0, internal, nx, ny, nz, 0, format, gl.HALF_FLOAT, data);
-      gl.texParameteri(gl.TEXTURE_3D, gl.TEXTURE_MIN_FILTER, filter);
-      gl.texParameteri(gl.TEXTURE_3D, gl.TEXTURE_MAG_FILTER, filter);
-      for (const w of [gl.TEXTURE_WRAP_S, gl.TEXTURE_WRAP_T, gl.TEXTURE_WRAP_R]) {
-        gl.texParameteri(gl.TEXTURE_3D, w, gl.CLAMP_TO_EDGE);
-      }
-      return t;
-    };
+    const { sigma_t, radiance_ms, majorant } = field.arrays;
+    const make = (arr, internal, format, data, filter, type) => this.makeTexture(arr, internal, format, data, filter, type);
     const m = mixOf(field, this.mix);
-    const sky = skyArray(field);
-    const shape = field.shape ? field.arrays[field.shape.array] : null;
-    const groups = shape ? Array.from({ length: Math.ceil(SHAPE_TERMS / 4) }, (_, g) => 4 * g) : [];
+    const taus = field.suns.map((s) => field.arrays[s.tau]);
+    const first = taus.length ? taus[0] : field.arrays.tau_light; // (zero without a sun)
+    const shaped = shapedSuns(field);
+    const groups = Array.from({ length: Math.ceil(SHAPE_TERMS / 4) }, (_, g) => 4 * g);
+    const layout = { suns: field.suns.length, shaped, env: !!m.env };
+    const programs = { exact: this.program({ packed: false, ...layout }), fast: this.program({ packed: true, ...layout, shaped: [] }) };
     const textures = {
-      ...Object.fromEntries(
-        groups.map((from) => [`shape${from / 4}`, make(shape, gl.RGBA16F, gl.RGBA, channelGroup(shape.data, SHAPE_TERMS, from), gl.LINEAR)]),
-      ),
-      densTau: make(sigma_t, gl.RG16F, gl.RG, interleaved(sigma_t.data, tau_light.data), gl.LINEAR),
-      rad: make(radiance_ms, gl.RGB16F, gl.RGB, radiance_ms.data, gl.LINEAR),
-      sky: sky ? make(sky, gl.RGB16F, gl.RGB, sky.data, gl.LINEAR) : null,
+      densTau: make(sigma_t, gl.RG16F, gl.RG, interleaved([sigma_t.data, first.data]), gl.LINEAR),
+      tauA: taus.length > 1 ? make(sigma_t, gl.RGBA16F, gl.RGBA, interleaved(taus.slice(1, 5).map((t) => t.data), 4), gl.LINEAR) : null,
+      tauB: taus.length > 5 ? make(sigma_t, gl.RGBA16F, gl.RGBA, interleaved(taus.slice(5).map((t) => t.data), 4), gl.LINEAR) : null,
+      rad: make(radiance_ms, gl.RGB16F, gl.RGB, m.ms.data, gl.LINEAR, gl.FLOAT),
       maj: make(majorant, gl.R16F, gl.RED, majorant.data, gl.NEAREST),
-      packed: this.makePacked(sigma_t, packedField(field, m.packed)),
+      packed: this.makePacked(sigma_t, packedField(field, m)),
+      env: m.env ? this.makeBackground(m.env) : null,
     };
+    for (const k of shaped) {
+      const shape = field.arrays[field.suns[k].shape.array];
+      groups.forEach((from, g) => {
+        textures[`shape${k}_${g}`] = make(shape, gl.RGBA16F, gl.RGBA, channelGroup(shape.data, SHAPE_TERMS, from), gl.LINEAR);
+      });
+    }
     const err = gl.getError();
     if (err !== gl.NO_ERROR && !gl.isContextLost()) {
       Object.values(textures).forEach((t) => t && gl.deleteTexture(t));
@@ -216,19 +259,22 @@ export class GLView {
     if (this.textures) Object.values(this.textures).forEach((t) => t && gl.deleteTexture(t));
     this.textures = textures;
     // a v1.1 field's arrays stay for re-mixes (setMix); a v1 field's can be collected
-    this.unitField = field.lights ? field : null;
+    this.unitField = field.unit ? field : null;
     const [nz, ny, nx] = sigma_t.shape;
     const [bz, by, bx] = majorant.shape;
     const B = majorant.block;
+    const toLight = field.suns.map((s) => normalize(s.direction.map((c) => -c)));
     // Keep the numbers the shader needs, not the arrays: the body can be garbage collected.
     this.field = {
+      programs,
+      suns: field.suns.length,
       worldToUnit: field.worldToUnit,
       step: field.step,
       maxDtau: field.maxDtau,
       edge: field.edge,
-      lightUnit: towardLight(field.worldToUnit, field.light.direction),
+      lightUnit: field.suns.map((s) => towardLight(field.worldToUnit, s.direction)),
       sigmaScale: Number(sigma_t.scale),
-      tauScale: Number(tau_light.scale),
+      tauScale: taus.map((t) => Number(t.scale)),
       majScale: Number(majorant.scale),
       ...m.uniforms,
       albedo: field.albedo,
@@ -239,10 +285,16 @@ export class GLView {
       textureBytes: GLView.textureBytes(field),
       radianceKey: field.header.radiance_key,
       phase: phaseLobes(field.header.phase),
-      // the view terms' scales, four a texture (zero past the last), and their frame
-      shapeScale: shape ? groups.flatMap((from) => [0, 1, 2, 3].map((c) => (from + c < SHAPE_TERMS ? shape.scale[from + c] : 0))) : null,
-      shapeFrame: field.shape ? field.shape.frame : null,
-      toLight: normalize(field.light.direction.map((c) => -c)),
+      // per shaped sun: its view terms' scales, four a texture (zero past the last), and frame
+      shapes: shaped.map((k) => {
+        const shape = field.arrays[field.suns[k].shape.array];
+        return {
+          sun: k,
+          scale: groups.flatMap((from) => [0, 1, 2, 3].map((c) => (from + c < SHAPE_TERMS ? shape.scale[from + c] : 0))),
+          frame: field.suns[k].shape.frame,
+        };
+      }),
+      toLight,
     };
   }
 
@@ -257,59 +309,66 @@ export class GLView {
     // The moving camera's texture holds isotropic single scattering (fieldtex.js): with a
     // Henyey-Greenstein phase every frame takes the exact march, whose phase factor is per ray
     fast = fast && !f.phase;
-    const { program, loc: L } = fast ? this.programs.fast : this.programs.exact;
+    const { program, loc: L } = fast ? f.programs.fast : f.programs.exact;
     const { forward, right, up } = cameraBasis(cam);
     const tanX = Math.tan((cam.fov * Math.PI) / 360);
+    // a uniform the shader optimised away has no location
+    const set = (fn, name, ...v) => L[name] && gl[fn](L[name], ...v);
     gl.viewport(0, 0, width, height);
     gl.useProgram(program);
-    gl.uniform3fv(L.uEye, cam.eye);
-    gl.uniform3fv(L.uForward, forward);
-    gl.uniform3fv(L.uRight, right);
-    gl.uniform3fv(L.uUp, up);
-    gl.uniform2f(L.uTan, tanX, (tanX * height) / width);
-    gl.uniform2f(L.uSize, width, height);
-    gl.uniformMatrix4fv(L.uWorldToUnit, true, f.worldToUnit);
-    gl.uniform1f(L.uStep, f.step * stepScale);
-    gl.uniform1f(L.uSigmaScale, f.sigmaScale);
-    gl.uniform1f(L.uTauScale, f.tauScale);
-    gl.uniform3fv(L.uRadScale, f.radScale);
-    gl.uniform3fv(L.uDirect, f.direct);
-    if (L.uSkyRadScale) gl.uniform3fv(L.uSkyRadScale, f.skyRadScale);
-    if (L.uHasSky) gl.uniform1i(L.uHasSky, this.textures.sky ? 1 : 0);
-    if (L.uSky) gl.uniform3fv(L.uSky, f.background);
-    if (L.uAnisotropic) gl.uniform1i(L.uAnisotropic, f.phase ? 1 : 0);
-    if (L.uPhase) gl.uniform3fv(L.uPhase, f.phase || [0, 0, 1]);
-    if (L.uToLight) gl.uniform3fv(L.uToLight, f.toLight);
-    if (L.uHasShape) gl.uniform1i(L.uHasShape, f.shapeScale ? 1 : 0);
-    if (f.shapeScale && L["uShapeScale[0]"]) {
-      gl.uniform4fv(L["uShapeScale[0]"], f.shapeScale);
-      gl.uniformMatrix3fv(L.uShapeFrame, true, f.shapeFrame);
+    set("uniform3fv", "uEye", cam.eye);
+    set("uniform3fv", "uForward", forward);
+    set("uniform3fv", "uRight", right);
+    set("uniform3fv", "uUp", up);
+    set("uniform2f", "uTan", tanX, (tanX * height) / width);
+    set("uniform2f", "uSize", width, height);
+    set("uniformMatrix4fv", "uWorldToUnit", true, f.worldToUnit);
+    set("uniform1f", "uStep", f.step * stepScale);
+    set("uniform1f", "uSigmaScale", f.sigmaScale);
+    set("uniform3fv", "uRadScale", f.radScale);
+    set("uniform3fv", "uSky", f.background);
+    set("uniform3fv", "uEnvScale", f.envScale);
+    if (f.suns) {
+      set("uniform1fv", "uTauScale[0]", f.tauScale);
+      set("uniform3fv", "uDirect[0]", f.direct.flat());
+      set("uniform3fv", "uToLight[0]", f.toLight.flat());
+      set("uniform3fv", "uLightUnit[0]", f.lightUnit.flat());
     }
-    gl.uniform3fv(L.uAlbedo, f.albedo);
-    gl.uniform1f(L.uGain, 2 ** exposure);
-    gl.uniform3fv(L.uBlockCells, f.blockCells);
-    gl.uniform3iv(L.uBlocks, f.blocks);
-    gl.uniform1ui(L.uSeed, seed);
-    gl.uniform2fv(L.uPixelOffset, offset);
-    gl.uniform1i(L.uLinearOut, linear ? 1 : 0);
-    gl.uniform1f(L.uLod, Math.max(0, Math.log2(stepScale / 2)));
-    gl.uniform1f(L.uMajScale, f.majScale);
-    gl.uniform1f(L.uMaxDtau, f.maxDtau);
-    gl.uniform3fv(L.uLightUnit, f.lightUnit);
-    gl.uniform1f(L.uEdge, f.edge);
+    set("uniform1i", "uAnisotropic", f.phase ? 1 : 0);
+    set("uniform3fv", "uPhase", f.phase || [0, 0, 1]);
+    if (!fast) {
+      for (const { sun, scale, frame } of f.shapes) {
+        set("uniform4fv", `uShapeScale${sun}[0]`, scale);
+        set("uniformMatrix3fv", `uShapeFrame${sun}`, true, frame);
+      }
+    }
+    set("uniform3fv", "uAlbedo", f.albedo);
+    set("uniform1f", "uGain", 2 ** exposure);
+    set("uniform3fv", "uBlockCells", f.blockCells);
+    set("uniform3iv", "uBlocks", f.blocks);
+    set("uniform1ui", "uSeed", seed);
+    set("uniform2fv", "uPixelOffset", offset);
+    set("uniform1i", "uLinearOut", linear ? 1 : 0);
+    set("uniform1f", "uLod", Math.max(0, Math.log2(stepScale / 2)));
+    set("uniform1f", "uMajScale", f.majScale);
+    set("uniform1f", "uMaxDtau", f.maxDtau);
+    set("uniform1f", "uEdge", f.edge);
+    const t = this.textures;
     const units = [
-      ["uDensTau", fast ? this.textures.packed : this.textures.densTau],
-      ["uRad", this.textures.rad],
-      ["uMaj", this.textures.maj],
-      ["uRadSky", this.textures.sky || this.textures.rad],
-      ...[0, 1, 2, 3].map((g) => [`uShape${g}`, this.textures[`shape${g}`] || this.textures.rad]),
+      ["uDensTau", fast ? t.packed : t.densTau],
+      ["uRad", t.rad],
+      ["uMaj", t.maj],
+      ["uTauA", t.tauA],
+      ["uTauB", t.tauB],
+      ...(fast ? [] : f.shapes.flatMap(({ sun }) => [0, 1, 2, 3].map((g) => [`uShape${sun}_${g}`, t[`shape${sun}_${g}`]]))),
     ];
-    units.forEach(([name, tex], i) => {
-      if (!L[name]) return; // optimised away
-      gl.activeTexture(gl.TEXTURE0 + i);
-      gl.bindTexture(gl.TEXTURE_3D, tex);
-      gl.uniform1i(L[name], i);
-    });
+    let unit = 0;
+    for (const [name, tex] of [...units, ["uEnv", t.env]]) {
+      if (!L[name] || !tex) continue; // optimised away, or not this field's
+      gl.activeTexture(gl.TEXTURE0 + unit);
+      gl.bindTexture(name === "uEnv" ? gl.TEXTURE_2D : gl.TEXTURE_3D, tex);
+      gl.uniform1i(L[name], unit++);
+    }
     gl.bindVertexArray(this.vao);
     gl.drawArrays(gl.TRIANGLES, 0, 3);
   }
@@ -388,6 +447,16 @@ export function phaseLobes(phase) {
   if (phase.type === "hg") return phase.g === 0 ? null : [phase.g, 0, 1];
   if (phase.type === "hg2") return [phase.g[0], phase.g[1], phase.weight];
   throw new Error(`the field's header has an unknown phase ${JSON.stringify(phase.type)}`);
+}
+
+/** Whether a field has an environment map's background to draw. */
+function hasEnv(field) {
+  return field.components.some((c) => c.background);
+}
+
+/** The indices of a field's directional lights whose view terms it holds. */
+function shapedSuns(field) {
+  return field.suns.flatMap((s, k) => (s.shape ? [k] : []));
 }
 
 /** The direction toward the light (against ``direction``, which light travels) in the unit cube

@@ -1,7 +1,7 @@
 // The light's direction as azimuth and elevation of the sun, drawn from above on a small canvas:
 // the rim is the horizon, the centre straight overhead, the right axis to the right and the
 // front (the default camera's side) at the bottom. Click or drag to set it. The arrow is the
-// way the light travels; the blue dot is the camera's side.
+// way the light travels; the blue dot is the camera's side; small dots are the other suns.
 
 import { AXES, dot, fromFrame } from "./camera.js";
 
@@ -42,6 +42,7 @@ export class LightWidget {
     this.az = 0;
     this.el = 45;
     this.cameraYaw = null;
+    this.others = []; // the other suns, { az, el }: drawn, not edited here
     this.axes = AXES.y;
     this.dragging = false;
     canvas.addEventListener("pointerdown", (e) => {
@@ -90,6 +91,12 @@ export class LightWidget {
     this.draw();
   }
 
+  /** The other suns' { az, el } (degrees), drawn as small dots. */
+  setOthers(list) {
+    this.others = list;
+    this.draw();
+  }
+
   setCamera(yawRad) {
     this.cameraYaw = yawRad;
     this.draw();
@@ -133,6 +140,14 @@ export class LightWidget {
       ctx.fillStyle = "#5aa0ff";
       ctx.beginPath();
       ctx.arc(px, py, 4, 0, 2 * Math.PI);
+      ctx.fill();
+    }
+
+    ctx.fillStyle = "#c9a14a";
+    for (const o of this.others) {
+      const ro = R * Math.min(1.15, 1 - o.el / 90);
+      ctx.beginPath();
+      ctx.arc(cx + ro * Math.sin(o.az * DEG), cy + ro * Math.cos(o.az * DEG), 4, 0, 2 * Math.PI);
       ctx.fill();
     }
 

@@ -1,9 +1,9 @@
-// The scene panel: volumes (list, upload), the up axis, medium (with its phase function), light
-// and the quality preset.
+// The scene panel: volumes (list, upload), the up axis, medium (with its phase function), the
+// lights (suns, a sky) and the quality preset.
 // values() is the scene without its camera; onVolume(info) when another volume (or up axis) is
 // chosen, onChange() when anything else that the cache depends on changes.
 
-import { $, formatBytes, h, readNumber, setText } from "./dom.js";
+import { $, $$, formatBytes, h, readNumber, setText } from "./dom.js";
 import { AXES } from "./camera.js";
 import { LightWidget, lightDirection } from "./lightwidget.js";
 
@@ -36,11 +36,23 @@ export function readPhase({ type, g, g2, weight }) {
   return null;
 }
 
-/** A sky's RGB radiance: ``scale`` times an <input type=color> value's linear colour. */
-export function skyRadiance(hex, scale) {
+/** The most lights a scene has (scene spec v1.1, ``lights``). */
+export const MAX_LIGHTS = 8;
+
+/** An RGB intensity: ``scale`` times an <input type=color> value's linear colour. */
+export function tinted(hex, scale) {
   const c = [1, 3, 5].map((i) => parseInt(hex.slice(i, i + 2), 16) / 255);
   const linear = c.map((v) => (v <= 0.04045 ? v / 12.92 : ((v + 0.055) / 1.055) ** 2.4));
   return linear.map((v) => Number((scale * v).toPrecision(4)));
+}
+
+/** A directional light of the spec from azimuth and elevation (degrees), an irradiance input
+ * and a colour input: a scalar irradiance for white, else RGB. ``n``: its number in words. */
+function sunSpec(az, el, irradianceInput, colourInput, axes, n = 1) {
+  const e = readNumber(irradianceInput, { min: 0 });
+  const white = colourInput.value.toLowerCase() === "#ffffff";
+  if (!white && !/^#[0-9a-f]{6}$/i.test(colourInput.value)) throw new Error(`sun ${n} colour: pick a colour`);
+  return { type: "directional", direction: lightDirection(az, el, axes), irradiance: white ? e : tinted(colourInput.value, e) };
 }
 
 function describeVolume(info) {
@@ -64,8 +76,12 @@ export class ScenePanel {
     this.az = $("#light-az");
     this.el = $("#light-el");
     this.irradiance = $("#irradiance");
+    this.sunColour = $("#sun-colour");
     this.sky = $("#sky");
     this.skyColour = $("#sky-colour");
+    this.sunList = $("#sun-list");
+    this.sunAdd = $("#sun-add");
+    this.sunAdd.addEventListener("click", () => this.addSun());
     this.quality = $("#quality");
     this.upAxis = $("#up-axis");
 
@@ -96,8 +112,9 @@ export class ScenePanel {
     for (const input of [this.density, this.albedo, this.irradiance, this.quality, this.sky]) {
       input.addEventListener("change", () => this.onChange());
     }
-    // the sky's colour re-mixes the view as it is picked (no request when the cache has a sky)
-    this.skyColour.addEventListener("input", () => this.onChange());
+    // colours re-mix the view as they are picked (no request when the cache holds the lights
+    // apart)
+    for (const input of [this.skyColour, this.sunColour]) input.addEventListener("input", () => this.onChange());
     this.showPhase();
     this.phase.type.addEventListener("change", () => {
       this.showPhase();
@@ -202,29 +219,92 @@ export class ScenePanel {
     };
     const phase = readPhase(this.phase);
     if (phase) medium.phase = phase;
-    const sun = {
-      type: "directional",
-      direction: lightDirection(az, el, this.axes()),
-      irradiance: readNumber(this.irradiance, { min: 0 }),
-    };
+    const suns = [sunSpec(az, el, this.irradiance, this.sunColour, this.axes())];
+    this.extraSuns().forEach((row, i) => {
+      const n = i + 2;
+      const [azIn, elIn, eIn, colour] = $$("input", row);
+      suns.push(sunSpec(readNumber(azIn, { min: -360, max: 360 }), readNumber(elIn, { min: -90, max: 90 }), eIn, colour, this.axes(), n));
+    });
     const sky = readNumber(this.sky, { min: 0 });
-    // Without a sky, a v1 scene's one light; with one, v1.1's lights (the cache holds them
-    // apart, so their intensities are not part of it: key())
-    const lightPart =
-      sky > 0 ? { lights: [sun, { type: "sky", radiance: skyRadiance(this.skyColour.value, sky) }] } : { light: sun };
+    const all = sky > 0 ? [...suns, { type: "sky", radiance: tinted(this.skyColour.value, sky) }] : suns;
+    if (all.length > MAX_LIGHTS) throw new Error(`lights: at most ${MAX_LIGHTS} in all (remove a sun or the sky)`);
+    // One sun alone: a v1 scene's one light; several or a sky: v1.1's lights (the cache holds
+    // them apart, so their intensities are not part of it: key())
+    const lightPart = all.length > 1 ? { lights: all } : { light: suns[0] };
     return { volume: { id: info.id }, medium, ...lightPart, lightPart, quality: this.quality.value };
   }
 
-  /** The lights' intensities, for the real-time view's mix: { sun: [3], sky: [3] }. */
+  /** The lights' intensities, for the real-time view's mix: { suns: [[3] per sun], sky: [3] }. */
   mix() {
     try {
       const v = this.values();
-      const [sun, sky] = v.lights || [v.light];
-      const e = sun.irradiance;
-      return { sun: [e, e, e], sky: sky ? sky.radiance : [0, 0, 0] };
+      const lights = v.lights || [v.light];
+      const rgb = (e) => (Array.isArray(e) ? e : [e, e, e]);
+      const sky = lights.find((l) => l.type === "sky");
+      return {
+        suns: lights.filter((l) => l.type === "directional").map((l) => rgb(l.irradiance)),
+        sky: sky ? sky.radiance : [0, 0, 0],
+      };
     } catch {
       return null;
     }
+  }
+
+  /** The rows of the suns after the first. */
+  extraSuns() {
+    return $$(".sun-row", this.sunList);
+  }
+
+  /** Adds a sun row (azimuth, elevation, irradiance, colour, remove); at most MAX_LIGHTS. */
+  addSun({ az = 150, el = 40, irradiance = 0.5, colour = "#ffffff" } = {}) {
+    if (this.extraSuns().length + 1 >= MAX_LIGHTS) return;
+    const n = this.extraSuns().length + 2;
+    const number = (value, label, min, max) =>
+      h("input", { type: "number", value, min, max, step: "any", "data-label": `sun ${n} ${label}`, title: `sun ${n}'s ${label}` });
+    const inputs = [
+      number(az, "azimuth", -360, 360),
+      number(el, "elevation", -90, 90),
+      number(irradiance, "irradiance", 0, undefined),
+      h("input", { type: "color", value: colour, title: `sun ${n}'s colour` }),
+    ];
+    inputs.forEach((input, i) => input.addEventListener(i === 3 ? "input" : "change", () => this.sunsChanged()));
+    const remove = h("button", { type: "button", class: "small", title: `remove sun ${n}` }, "×");
+    const row = h("div", { class: "sun-row" }, h("span", {}, `Sun ${n}`), ...inputs, remove);
+    remove.addEventListener("click", () => {
+      row.remove();
+      this.renumberSuns();
+      this.sunsChanged();
+    });
+    this.sunList.append(row);
+    this.sunsChanged();
+    return row;
+  }
+
+  /** Labels the sun rows 2, 3, ... in order after a removal. */
+  renumberSuns() {
+    this.extraSuns().forEach((row, i) => {
+      const n = i + 2;
+      $("span", row).textContent = `Sun ${n}`;
+      const [azIn, elIn, eIn, colour] = $$("input", row);
+      [azIn, elIn, eIn].forEach((input, k) => {
+        const what = ["azimuth", "elevation", "irradiance"][k];
+        input.dataset.label = `sun ${n} ${what}`;
+        input.title = `sun ${n}'s ${what}`;
+      });
+      colour.title = `sun ${n}'s colour`;
+      $("button", row).title = `remove sun ${n}`;
+    });
+  }
+
+  /** The suns changed: the widget shows the others, the add button stops at MAX_LIGHTS. */
+  sunsChanged() {
+    const others = this.extraSuns().map((row) => {
+      const [azIn, elIn] = $$("input", row);
+      return { az: Number(azIn.value), el: Number(elIn.value) };
+    });
+    this.light.setOthers(others.filter((o) => Number.isFinite(o.az) && Number.isFinite(o.el)));
+    this.sunAdd.disabled = others.length + 1 >= MAX_LIGHTS;
+    this.onChange();
   }
 
   /** What a radiance cache depends on, as a string (null when the inputs are invalid): for

@@ -12,11 +12,15 @@
 //                     + M0 (1 - e^-dtau) + (M1 - M0) (1 - e^-dtau (1 + dtau)) / dtau];  Tr *= e^-dtau
 //   segments of at most uMaxDtau at the block's majorant, and uStep; the first (1 - u) of one
 //   long, with one jitter u per pixel; stop when Tr < 1e-3
-// An anisotropic phase's field adds to L_ms the sun's view terms: E sum_i c_i(x) B_i(d), with
-// B_i the functions of direction of cloudgraph/phase.py (in uShapeFrame: z toward the light;
-// per ray) and c_i the ms_shape array's 14 channels, then clamps L_ms at 0, as the server does.
-// A v1.1 field's sky: its radiance array (in-scattered sky light, single scattering included)
-// added to L_ms, and the sky seen behind the medium, L += Tr uSky at the ray's end.
+// Several directional lights (a v1.1 field): single scattering summed over them, each with its
+// own tau_light (the first in uDensTau's G, the next in uTauA's and uTauB's channels), its E p
+// per ray and its edge integral. L_ms is every component's radiance array mixed in the page by
+// the lights' intensities (one texture, glview.js), a sky's included.
+// An anisotropic phase's field adds to L_ms each sun's view terms: E sum_i c_i(x) B_i(d), with
+// B_i the functions of direction of cloudgraph/phase.py (in the sun's frame: z toward it; per
+// ray) and c_i its ms_shape array's 14 channels, then clamps L_ms at 0, as the server does.
+// The sky and environment maps seen behind the medium: L += Tr (uSky + the maps' lat-long
+// background along d) at the ray's end.
 // then display: clamp(L 2^exposure, 0, 1) through the sRGB transfer.
 
 export const VERTEX = `#version 300 es
@@ -29,27 +33,77 @@ void main() {
 
 export const MAX_STEPS = 4096;
 
+/** Texture units a program of ``suns`` directional lights, ``shaped`` of them with view terms,
+ * binds: uDensTau, uRad, uMaj, the extra tau textures, four for each shaped sun. */
+export function textureUnits(suns, shaped) {
+  return 3 + tauTextures(suns) + 4 * shaped;
+}
+
+/** RGBA textures of tau_light beside uDensTau's G: suns 1-4 (uTauA), 5-8 (uTauB). */
+export function tauTextures(suns) {
+  return Math.ceil(Math.max(0, suns - 1) / 4);
+}
+
+/** The GLSL of sun k's tau_light texel at p (the exact march's). */
+function tauTexel(k) {
+  if (k === 0) return "st.g";
+  return `texture(uTau${k <= 4 ? "A" : "B"}, p).${"rgba"[(k - 1) % 4]}`;
+}
+
 /**
  * The fragment shader. packed = false: the exact march, sigma_t and tau_light in one RG texture
- * and radiance_ms in another, L_in formed per sample as the server forms it (two fetches a
- * step). packed = true: one RGBA texture of (sigma_t, L_in) made in the page, one fetch a step,
- * for frames while the camera moves (L_in interpolated instead of exp(-tau)).
+ * and L_ms in another, L_in formed per sample as the server forms it (two fetches a step, more
+ * with several suns). packed = true: one RGBA texture of (sigma_t, L_in) made in the page, one
+ * fetch a step, for frames while the camera moves (L_in interpolated instead of exp(-tau)).
+ * suns: the field's directional lights (0 .. MAX_SUNS of field.js); shaped: the indices of
+ * those whose view terms the field holds (an anisotropic phase; the exact march only).
  */
-export function fragmentShader({ packed = false } = {}) {
+export function fragmentShader({ packed = false, suns = 1, shaped = [], env = false } = {}) {
+  const ns = Math.max(1, suns); // GLSL arrays are never empty
+  const range = (n) => Array.from({ length: n }, (_, k) => k);
+  const shapedSuns = packed ? [] : shaped;
+  const shapeDecls = shapedSuns
+    .map(
+      (k) => `uniform sampler3D uShape${k}_0;  // sun ${k}'s ms_shape channels 0-3 / their scales (linear)
+uniform sampler3D uShape${k}_1;  // 4-7
+uniform sampler3D uShape${k}_2;  // 8-11
+uniform sampler3D uShape${k}_3;  // 12-13 (BA unused)
+uniform vec4 uShapeScale${k}[4]; // the channels' scales
+uniform mat3 uShapeFrame${k};    // rows e_x, e_y, e_z of its frame (e_z toward the sun)
+vec4 gB${k}[4];                  // its functions of direction at the ray's direction`,
+    )
+    .join("\n");
+  const tauLines = range(suns)
+    .map((k) => `  s.tau[${k}] = tauAt(pc, uLightUnit[${k}], ${tauTexel(k)} * uTauScale[${k}]);`)
+    .join("\n");
+  const viewLines = shapedSuns
+    .map(
+      (k) => `  view += uDirect[${k}] * (dot(texture(uShape${k}_0, p) * uShapeScale${k}[0], gB${k}[0])
+              + dot(texture(uShape${k}_1, p) * uShapeScale${k}[1], gB${k}[1])
+              + dot(texture(uShape${k}_2, p) * uShapeScale${k}[2], gB${k}[2])
+              + dot(texture(uShape${k}_3, p) * uShapeScale${k}[3], gB${k}[3]));`,
+    )
+    .join("\n");
+  const basisLines = shapedSuns.map((k) => `  viewBasis(uShapeFrame${k} * d, gB${k});`).join("\n");
   return `#version 300 es
 #define PACKED ${packed ? 1 : 0}
+#define SUNS ${suns}
+#define NS ${ns}
+#define ENV ${env ? 1 : 0}
 precision highp float;
 precision highp int;
 precision highp sampler3D;
 
-uniform sampler3D uDensTau;   // R: sigma_t / sigmaScale, G: tau_light (field grid, linear);
-                              // PACKED: R as above, GBA: L_in
-uniform sampler3D uRad;       // RGB: radiance after the first scattering / radScale (linear)
+uniform sampler3D uDensTau;   // R: sigma_t / sigmaScale, G: the first sun's tau_light (field grid,
+                              // linear); PACKED: R as above, GBA: L_in
+uniform sampler3D uTauA;      // RGBA: suns 1-4's tau_light (linear; several suns only)
+uniform sampler3D uTauB;      // RGBA: suns 5-8's
+uniform sampler3D uRad;       // RGB: L_ms, the lights' components mixed / uRadScale (linear)
 uniform sampler3D uMaj;       // R: majorant / uMajScale per block (nearest, texelFetch)
-uniform sampler3D uRadSky;    // RGB: a v1.1 field's sky radiance / its scale (linear)
-uniform bool uHasSky;         // whether uRadSky holds a sky beside a sun's radiance
-uniform vec3 uSkyRadScale;    // the sky's radiance = texel * uSkyRadScale (its intensity in)
 uniform vec3 uSky;            // the sky's radiance seen behind the medium (0 without a sky)
+uniform sampler2D uEnv;       // ENV: the environment maps' radiance seen behind it / uEnvScale,
+                              // lat-long: u = atan2(x, -z) / 2pi, v = acos(y) / pi (api.md)
+uniform vec3 uEnvScale;
 
 uniform vec3 uEye;            // camera, world units
 uniform vec3 uForward;
@@ -60,12 +114,12 @@ uniform vec2 uSize;           // image size in pixels
 uniform mat4 uWorldToUnit;    // world -> unit cube [0,1]^3 of the field
 uniform float uStep;          // largest segment, world units
 uniform float uSigmaScale;    // sigma_t per world unit = texel * uSigmaScale
-uniform float uTauScale;      // tau_light = texel * uTauScale
-uniform vec3 uRadScale;       // radiance_ms = texel * uRadScale
-uniform vec3 uDirect;         // irradiance / 4pi (times phaseFactor per ray)
+uniform float uTauScale[NS];  // a sun's tau_light = texel * its scale
+uniform vec3 uRadScale;       // L_ms = texel * uRadScale
+uniform vec3 uDirect[NS];     // each sun's irradiance / 4pi (times phaseFactor per ray)
 uniform bool uAnisotropic;    // whether the phase is Henyey-Greenstein, not isotropic
 uniform vec3 uPhase;          // its lobes: g1, g2, the first's weight (g > 0 forward)
-uniform vec3 uToLight;        // unit direction toward the light, world
+uniform vec3 uToLight[NS];    // unit direction toward each sun, world
 uniform vec3 uAlbedo;
 uniform float uGain;          // 2^exposure
 uniform vec3 uBlockCells;     // majorant blocks per unit length on each axis (n / B)
@@ -76,15 +130,9 @@ uniform bool uLinearOut;      // write linear radiance x 2^exposure (to average)
 uniform float uLod;           // PACKED: mip level of the field for long steps
 uniform float uMajScale;      // majorant per world unit = texel * uMajScale
 uniform float uMaxDtau;       // optical depth of a segment at most, at the block's majorant
-uniform vec3 uLightUnit;      // the direction toward the light in the unit cube, per world unit
+uniform vec3 uLightUnit[NS];  // the direction toward each sun in the unit cube, per world unit
 uniform float uEdge;          // where the light enters within this, tau_light is integrated
-uniform bool uHasShape;       // whether the field holds the sun's view terms (ms_shape)
-uniform sampler3D uShape0;    // ms_shape's channels 0-3 / their scales (linear)
-uniform sampler3D uShape1;    // 4-7
-uniform sampler3D uShape2;    // 8-11
-uniform sampler3D uShape3;    // 12-13 (BA unused)
-uniform vec4 uShapeScale[4];  // the channels' scales
-uniform mat3 uShapeFrame;     // rows e_x, e_y, e_z of the view terms' frame (e_z toward the light)
+${shapeDecls}
 
 out vec4 outColor;
 
@@ -104,39 +152,53 @@ float hg4pi(float g, float mu) {
   return (1.0 - g * g) / (denom * sqrt(denom));
 }
 
-// The phase factor of single scattering for a ray along d: 4pi p(to_light . d), as the server's
-// field estimator takes it (1 for the isotropic phase).
-float phaseFactor(vec3 d) {
+// The phase factor of single scattering for a ray along d from a light toward toLight:
+// 4pi p(toLight . d), as the server's field estimator takes it (1 for the isotropic phase).
+float phaseFactor(vec3 toLight, vec3 d) {
   if (!uAnisotropic) return 1.0;
-  float mu = dot(uToLight, d);
+  float mu = dot(toLight, d);
   return uPhase.z * hg4pi(uPhase.x, mu) + (1.0 - uPhase.z) * hg4pi(uPhase.y, mu);
 }
 
-// The view terms' functions of direction at the ray's direction d (constant along a ray):
-// in the frame's coordinates (x, y, z), y, z, x, 6xy, 3yz, P2(z), 3xz, 3(x^2 - y^2), P3..P8(z).
-vec4 gB[4];
-void viewBasis(vec3 d) {
-  vec3 v = uShapeFrame * d;  // (e_x . d, e_y . d, e_z . d): the frame's rows
+// The view terms' functions of direction at v, the ray's direction in a sun's frame (constant
+// along a ray): in the frame's coordinates (x, y, z), y, z, x, 6xy, 3yz, P2(z), 3xz,
+// 3(x^2 - y^2), P3..P8(z).
+void viewBasis(vec3 v, out vec4 B[4]) {
   float x = v.x, y = v.y, z = v.z;
   float P[9];
   P[0] = 1.0;
   P[1] = z;
   for (int n = 1; n < 8; n++) P[n + 1] = (float(2 * n + 1) * z * P[n] - float(n) * P[n - 1]) / float(n + 1);
-  gB[0] = vec4(y, z, x, 6.0 * x * y);
-  gB[1] = vec4(3.0 * y * z, P[2], 3.0 * x * z, 3.0 * (x * x - y * y));
-  gB[2] = vec4(P[3], P[4], P[5], P[6]);
-  gB[3] = vec4(P[7], P[8], 0.0, 0.0);
+  B[0] = vec4(y, z, x, 6.0 * x * y);
+  B[1] = vec4(3.0 * y * z, P[2], 3.0 * x * z, 3.0 * (x * x - y * y));
+  B[2] = vec4(P[3], P[4], P[5], P[6]);
+  B[3] = vec4(P[7], P[8], 0.0, 0.0);
+}
+
+// Optical depth to a sun at the unit point pc (clamped to the box): the grid's ("grid"), or
+// where the light enters the box, within uEdge, the integral of sigma_t to it (3 midpoints; the
+// grid's texture clamps there). A point on the box's surface, where a ray enters it, counts as
+// inside; the light never leaves through the faces it runs parallel to.
+float tauAt(vec3 pc, vec3 lu, float grid) {
+  vec3 te = mix(max(-pc / lu, (1.0 - pc) / lu), vec3(1e30), lessThan(abs(lu), vec3(1e-9)));
+  float tExit = max(min(min(te.x, te.y), te.z), 0.0);
+  if (tExit > uEdge) return grid;
+  float sum = 0.0;
+  for (int k = 0; k < 3; k++) {
+    sum += texture(uDensTau, pc + ((float(k) + 0.5) / 3.0) * tExit * lu).r;
+  }
+  return sum * uSigmaScale * tExit / 3.0;
 }
 
 float srgb(float x) {
   return x <= 0.0031308 ? 12.92 * x : 1.055 * pow(x, 1.0 / 2.4) - 0.055;
 }
 
-// What a segment's end holds: sigma_t per world unit, tau_light and L_ms (PACKED: L_in in ms,
-// tau unused).
+// What a segment's end holds: sigma_t per world unit, tau_light per sun and L_ms (PACKED:
+// L_in in ms, tau unused).
 struct Sample {
   float sigma;
-  float tau;
+  float tau[NS];
   vec3 ms;
 };
 
@@ -145,33 +207,16 @@ Sample sampleAt(vec3 p) {
 #if PACKED
   vec4 v = textureLod(uDensTau, p, uLod);
   s.sigma = v.r * uSigmaScale;
-  s.tau = 0.0;
   s.ms = v.gba;
 #else
   vec2 st = texture(uDensTau, p).rg;
   s.sigma = st.r * uSigmaScale;
   s.ms = texture(uRad, p).rgb * uRadScale;
-  if (uHasSky) s.ms += texture(uRadSky, p).rgb * uSkyRadScale;
-  if (uHasShape) {
-    float view = dot(texture(uShape0, p) * uShapeScale[0], gB[0]) + dot(texture(uShape1, p) * uShapeScale[1], gB[1])
-               + dot(texture(uShape2, p) * uShapeScale[2], gB[2]) + dot(texture(uShape3, p) * uShapeScale[3], gB[3]);
-    s.ms = max(s.ms + uDirect * (4.0 * 3.14159265358979) * view, 0.0);
-  }
-  // Where the light enters the box the grid's texture clamps: integrate sigma_t there instead
-  // (a point on the box's surface, where a ray enters it, counts as inside; the light never
-  // leaves through the faces it runs parallel to)
+  vec3 view = vec3(0.0);
+${viewLines}
+  s.ms = ${shapedSuns.length ? "max(s.ms + (4.0 * 3.14159265358979) * view, 0.0)" : "s.ms"};
   vec3 pc = clamp(p, 0.0, 1.0);
-  vec3 te = mix(max(-pc / uLightUnit, (1.0 - pc) / uLightUnit), vec3(1e30), lessThan(abs(uLightUnit), vec3(1e-9)));
-  float tExit = max(min(min(te.x, te.y), te.z), 0.0);
-  if (tExit <= uEdge) {
-    float sum = 0.0;
-    for (int k = 0; k < 3; k++) {
-      sum += texture(uDensTau, pc + ((float(k) + 0.5) / 3.0) * tExit * uLightUnit).r;
-    }
-    s.tau = sum * uSigmaScale * tExit / 3.0;
-  } else {
-    s.tau = st.g * uTauScale;
-  }
+${tauLines}
 #endif
   return s;
 }
@@ -192,8 +237,9 @@ void main() {
   float t = max(max(max(tlo.x, tlo.y), tlo.z), 0.0);
   float tEnd = min(min(thi.x, thi.y), thi.z);
   vec3 L = vec3(0.0);           // radiance accumulator
-  vec3 direct = uDirect * phaseFactor(d);  // E p: single scattering's, constant along the ray
-  if (uHasShape) viewBasis(d);
+  vec3 direct[NS];              // E p per sun: single scattering's, constant along the ray
+  for (int k = 0; k < SUNS; k++) direct[k] = uDirect[k] * phaseFactor(uToLight[k], d);
+${basisLines}
   float Tr = 1.0;               // transmittance from the eye
   if (tEnd > t) {
     float frac = 1.0 - jitter(uvec2(gl_FragCoord.xy));  // the first segment's share of a step
@@ -232,9 +278,11 @@ void main() {
       float w1 = dtau > 1e-3 ? (1.0 - segTr * (1.0 + dtau)) / dtau : 0.5 * dtau;
       vec3 seg_L = f0.ms * (1.0 - segTr) + (f1.ms - f0.ms) * w1;
 #if !PACKED
-      float a = dtau + f1.tau - f0.tau;
-      float single = abs(a) < 1e-4 ? exp(-f0.tau) * (1.0 - 0.5 * a) : (exp(-f0.tau) - exp(-f1.tau - dtau)) / a;
-      seg_L += direct * dtau * single;
+      for (int k = 0; k < SUNS; k++) {
+        float a = dtau + f1.tau[k] - f0.tau[k];
+        float single = abs(a) < 1e-4 ? exp(-f0.tau[k]) * (1.0 - 0.5 * a) : (exp(-f0.tau[k]) - exp(-f1.tau[k] - dtau)) / a;
+        seg_L += direct[k] * dtau * single;
+      }
 #endif
       L += Tr * uAlbedo * seg_L;
       Tr *= segTr;
@@ -245,7 +293,11 @@ void main() {
       if (t >= tEnd || Tr < TR_MIN) break;
     }
   }
-  L += Tr * uSky;               // the sky behind the medium
+  vec3 behind = uSky;           // the sky behind the medium, and the environment maps
+#if ENV
+  behind += texture(uEnv, vec2(atan(d.x, -d.z) * (0.5 / 3.14159265358979), acos(clamp(d.y, -1.0, 1.0)) * (1.0 / 3.14159265358979))).rgb * uEnvScale;
+#endif
+  L += Tr * behind;
   if (uLinearOut) {
     outColor = vec4(L * uGain, 1.0);
     return;

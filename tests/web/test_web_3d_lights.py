@@ -1,0 +1,88 @@
+"""The page, a step of one session after the phase's (see conftest.py): several lights. A
+second sun and a sky make the scene's lights v1.1 ``lights``: a relight on the server (the graph
+reused), then the real-time view draws both suns and the sky within 1 % of the server's `field`
+render. Each light's intensity and colour re-mix the view at once with no request; removing the
+sun and the sky again brings back the one light's cache."""
+
+from __future__ import annotations
+
+from .page import (
+    assert_realtime_is_the_server_field,
+    errors_shown,
+    frames_drawn,
+    shot,
+    shown_pixels,
+    wait_rest,
+)
+from .test_web_3_compare_relight import MAX_FIELD_REL_MAE
+from .test_web_3b_sky import change, corners
+
+#: The one light's field key before (the last step brings it back).
+BEFORE = {}
+
+
+def mean(pixels: list[float]) -> float:
+    return sum(pixels) / len(pixels)
+
+
+def test_a_second_sun_and_a_sky_relight_then_are_drawn_like_the_server(page):
+    wait_rest(page, frames_drawn(page) - 1)
+    old_key = BEFORE["key"] = page.get_attribute("#viewport", "data-field-key")
+    page.click("#sun-add")
+    row = "#sun-list .sun-row:nth-child(1)"
+    change(page, f"{row} input[data-label='sun 2 azimuth']", "120")
+    change(page, f"{row} input[data-label='sun 2 elevation']", "-20")  # from below, the other side
+    change(page, f"{row} input[data-label='sun 2 irradiance']", "1.5")
+    change(page, "#sky", "0.3")
+    page.wait_for_selector("#relight-info[data-seconds]", timeout=600_000)
+    page.wait_for_function(
+        f"() => {{ const k = document.querySelector('#viewport').dataset.fieldKey;"
+        f" return k && k !== '{old_key}'; }}",
+        timeout=120_000,
+    )
+    wait_rest(page, frames_drawn(page) - 1)
+    shot(page, "08i-two-suns-and-a-sky")
+    assert_realtime_is_the_server_field(page, "two suns + sky", MAX_FIELD_REL_MAE)
+
+
+def test_each_light_s_intensity_and_colour_re_mix_with_no_request(page):
+    requests = []
+
+    def seen(request):
+        requests.append(request.url)
+
+    page.on("request", seen)
+    try:
+        key = page.get_attribute("#viewport", "data-field-key")
+        before = mean(shown_pixels(page))
+        frames = frames_drawn(page)
+        change(page, "#sun-list input[data-label='sun 2 irradiance']", "0")  # the second sun off
+        wait_rest(page, frames)
+        without = mean(shown_pixels(page))
+        frames = frames_drawn(page)
+        change(page, "#sun-list input[data-label='sun 2 irradiance']", "4")
+        page.fill("#sun-list input[type=color]", "#ff8000")  # an orange second sun
+        page.dispatch_event("#sun-list input[type=color]", "input")
+        wait_rest(page, frames)
+        brighter = mean(shown_pixels(page))
+    finally:
+        page.remove_listener("request", seen)
+    assert page.get_attribute("#viewport", "data-field-key") == key
+    assert [u for u in requests if "/v1/" in u] == [], requests
+    assert without < before - 3 and brighter > before + 5, (without, before, brighter)
+    assert errors_shown(page) == []
+    shot(page, "08j-second-sun-re-mixed")
+    # the server's field in the new mix (the same cache, other intensities) is the page's
+    assert_realtime_is_the_server_field(page, "re-mixed suns", MAX_FIELD_REL_MAE)
+
+
+def test_removing_the_sun_and_the_sky_brings_back_the_one_light(page):
+    page.click("#sun-list .sun-row button")
+    change(page, "#sky", "0")
+    page.wait_for_function(
+        f"() => document.querySelector('#viewport').dataset.fieldKey === '{BEFORE['key']}'", timeout=120_000
+    )
+    wait_rest(page, frames_drawn(page) - 1)
+    assert page.eval_on_selector_all("#sun-list .sun-row", "rows => rows.length") == 0
+    assert corners(shown_pixels(page)) < 20  # no sky behind the cloud
+    assert errors_shown(page) == []
