@@ -42,7 +42,7 @@ from scipy.ndimage import gaussian_filter, maximum_filter
 from scipy.spatial import cKDTree
 
 from .chunks import placed
-from .field_file import RadianceField, pack_array
+from .field_file import RadianceField, component_names, pack_array, shape_name
 from .field_grid import FieldPoints, to_world, unit_points
 from .light_depth import fit_depth
 from .lights import Lights
@@ -309,15 +309,13 @@ def bake_field(
             entry = {"type": lights.kind(c)}
             if entry["type"] == "directional":
                 entry["direction"] = lights.directions[c].tolist()
-                entry["tau"] = "tau_light" if c == 0 else f"tau_light_{c}"
-                if c > 0:
-                    extra[entry["tau"]] = taus[c]
-            entry["ms"] = "radiance_ms" if c == 0 else f"radiance_ms_{c}"
+            entry.update(component_names(c, entry["type"]))
+            if c > 0 and "tau" in entry:
+                extra[entry["tau"]] = taus[c]
             if entry["type"] == "envmap":
-                entry["background"] = f"background_{c}"
                 extra[entry["background"]] = background_map(lights.envmaps[c - lights.count + len(lights.envmaps)])
             if c in shapes:
-                entry["shape"] = _shape_entry("ms_shape" if c == 0 else f"ms_shape_{c}", lights, c)
+                entry["shape"] = _shape_entry(shape_name(c), lights, c)
                 extra[entry["shape"]["array"]] = shapes[c]
             if c > 0:
                 extra[entry["ms"]] = ms[c]

@@ -129,6 +129,43 @@ class RadianceField:
 ARRAYS = ("sigma_t", "tau_light", "radiance_ms", "majorant")
 
 
+def component_names(c: int, kind: str) -> dict:
+    """The array names of light component c (of ``kind``) in a v1.1 field's header (module
+    docstring): ``ms``, and ``tau`` (directional) or ``background`` (envmap)."""
+    names = {"tau": "tau_light" if c == 0 else f"tau_light_{c}"} if kind == "directional" else {}
+    names["ms"] = "radiance_ms" if c == 0 else f"radiance_ms_{c}"
+    if kind == "envmap":
+        names["background"] = f"background_{c}"
+    return names
+
+
+def shape_name(c: int) -> str:
+    """The array name of directional component c's view terms."""
+    return "ms_shape" if c == 0 else f"ms_shape_{c}"
+
+
+def combined(parts: list[RadianceField], radiance_key: str) -> RadianceField:
+    """The field of several light components from each component's own v1.1 field (one light
+    each, of one graph and medium: their sigma_t and majorant are the same), in ``parts``'
+    order: each part's arrays renamed as component_names gives them."""
+    first = parts[0]
+    meta = {**first.meta, "radiance_key": radiance_key, "lights": []}
+    arrays = {}
+    for c, part in enumerate(parts):
+        (entry,) = part.meta["lights"]
+        renamed = {**entry, **component_names(c, entry["type"])}
+        for role in ("ms", "tau", "background"):
+            if role in entry:
+                arrays[renamed[role]] = part.array(entry[role])
+        if "shape" in entry:
+            renamed["shape"] = {**entry["shape"], "array": shape_name(c)}
+            arrays[shape_name(c)] = part.array(entry["shape"]["array"])
+        meta["lights"].append(renamed)
+    tau = arrays.pop("tau_light", np.zeros_like(first.sigma_t))
+    ms = arrays.pop("radiance_ms")
+    return RadianceField(first.sigma_t, tau, ms, first.majorant, meta, {}, arrays)
+
+
 #: A gzip member's header: deflate, no name, mtime 0, fastest level, unknown OS.
 _GZIP_HEADER = b"\x1f\x8b\x08\x00\x00\x00\x00\x00\x04\xff"
 

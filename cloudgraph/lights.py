@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import SceneError
-from .scene import Scene
+from .scene import EnvmapSpec, LightSpec, Scene, SkySpec
 
 
 @dataclass(frozen=True)
@@ -108,6 +108,17 @@ class Lights:
         c = np.asarray(components)
         m = self.mix.reshape((self.count,) + (1,) * (c.ndim - 2) + (3,))
         return (c * m.astype(c.dtype)).sum(axis=0)
+
+
+def component_scenes(scene: Scene) -> list[Scene]:
+    """Per light component of a v1.1 scene (Lights.of's order: the directional lights, the sky,
+    the environment maps), the scene lit by that component alone at unit intensity: its own
+    cache is that component's (transport and the bake are linear in the light)."""
+    lights = Lights.of(scene)
+    specs = [LightSpec(direction=tuple(d)) for d in lights.directions]
+    specs += [SkySpec()] if lights.sky else []
+    specs += [EnvmapSpec(path=path) for path in lights.envmaps]
+    return [scene.model_copy(update={"lights": (spec,)}) for spec in specs]
 
 
 @lru_cache(maxsize=64)

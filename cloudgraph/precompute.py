@@ -2,7 +2,9 @@
 through the cache.
 
 A changed albedo, light or depth reuses the graph and recomputes only the radiance and the field
-(a relight). An anisotropic phase (docs/method.md, "Anisotropic scattering") builds, lights and
+(a relight). A cache of several lights (v1.1 ``lights``) is made of each light component's own
+cache, found or made (:func:`_composed`): a new light list on a graph computes its new lights
+only. An anisotropic phase (docs/method.md, "Anisotropic scattering") builds, lights and
 transports the graph of the similarity-scaled isotropic medium (``MediumSpec.graph_medium``),
 and bakes the field in the real one: its single scattering and its flights to the graph's
 radiance are those of the real medium.
@@ -21,7 +23,7 @@ from .cache import CacheStore, cache_keys
 from .chunks import placed
 from .errors import CacheError
 from .field import bake_field, march_light
-from .field_file import RadianceField
+from .field_file import RadianceField, combined
 from .field_grid import FieldPoints
 from .graph import Graph
 from .graph_file import (
@@ -34,7 +36,7 @@ from .graph_file import (
     stored_positions,
     unpack_radiance,
 )
-from .lights import Lights
+from .lights import Lights, component_scenes
 from .params import LIGHTING, BuildParams, build_params
 from .scene import Scene
 from .stages import local_chunks
@@ -140,6 +142,11 @@ def precompute(
     keys = cache_keys(scene, volume, params)
     gkey, rkey = keys["graph_key"], keys["radiance_key"]
     lights = Lights.of(scene)
+    if lights.basis and lights.count > 1:
+        found = read_radiance(store.radiance_path(rkey))
+        found_field = store.load_field(rkey) if found is not None else None
+        if found_field is None:
+            return _composed(scene, volume, quality, store, progress, chunks, keys, build_overrides)
     # The graph's medium: the scene's, or for an anisotropic phase its similarity-scaled
     # isotropic medium (sigma_t' = sigma_t (1 - a g), albedo' = a (1 - g) / (1 - a g)). The
     # field is baked in the real medium, by a builder of its own; its chunks then run here, as
@@ -296,6 +303,47 @@ def precompute(
     if not isotropic:
         stats["similarity"] = {"density_scale": graph_density, "albedo": list(graph_albedo)}
     return RadianceCache(radiance, radiance_gather, field_data, keys, stats, store, graph)
+
+
+def _composed(scene, volume, quality, store, progress, chunks, keys, build_overrides) -> RadianceCache:
+    """The cache of a scene of several light components, made of each component's own cache
+    (component_scenes: found in the store, or precomputed now on the one graph): transport and
+    the bake are linear in the light and each component's depend on that light alone, so its
+    radiance and field arrays are the components' side by side."""
+    parts = []
+    scenes = component_scenes(scene)
+    for c, single in enumerate(scenes):
+
+        def part_progress(stage, fraction, c=c):  # the components in turn
+            progress(stage, (c + fraction) / len(scenes))
+
+        parts.append(precompute(single, volume, quality, store, part_progress, chunks, **build_overrides))
+    rkey = keys["radiance_key"]
+    radiance = np.concatenate([p.radiance for p in parts])  # (K N, 3): component after component
+    radiance_gather = np.concatenate([p.radiance_gather for p in parts])
+    times = ("lighting_s", "transport_s", "field_s", "field_tau_s", "field_ms_s")
+    rstats = {
+        **{k: v for k, v in parts[0].stats.items() if not k.endswith("_bytes")},
+        **{k: round(sum(p.stats.get(k, 0.0) for p in parts), 3) for k in times},
+        "light_components": len(parts),
+        # components whose cache was there already: their lighting, transport and bake reused
+        "components_reused": sum(p.stats["radiance_reused"] and p.stats["field_reused"] for p in parts),
+        "graph_reused": all(p.stats["graph_reused"] for p in parts),
+        "radiance_reused": False,
+        "field_reused": False,
+    }
+    store.save_radiance(rkey, radiance_file(pack_radiance(radiance, radiance_gather), rstats))
+    field = combined([p.field for p in parts], rkey)
+    field_data = field.encode()
+    store.save_field(rkey, field_data)
+    progress("done", 1.0)
+    paths = {
+        "graph": store.graph_path(keys["graph_key"]),
+        "radiance": store.radiance_path(rkey),
+        "field": store.field_path(rkey),
+    }
+    stats = {**rstats, **{f"{kind}_bytes": _size(path) for kind, path in paths.items()}}
+    return RadianceCache(radiance, radiance_gather, field_data, keys, stats, store, parts[0]._graph)
 
 
 def stack_components(L: np.ndarray, k: int) -> np.ndarray:

@@ -213,6 +213,28 @@ def test_with_forward_scattering_two_suns_are_still_the_sum_of_each_alone(varian
     assert m["binned_relMAE"] < 0.015 and abs(m["mean_ratio"] - 1) < 0.01, m
 
 
+def test_a_new_light_list_computes_its_new_lights_only(variant, tmp_path):
+    # A cache of several lights is its components' own caches side by side: a relight that adds
+    # a light lights, transports and bakes that light alone, and the lights it had keep their
+    # bits; the same lights in another order compute nothing
+    volume = sphere_volume(24, soft=0.2)
+    store = CacheStore(tmp_path)
+    first = precompute(lit(volume, [SUN, SKY], 1.0, size=24), volume, "draft", store)
+    assert first.stats["light_components"] == 2 and first.stats["components_reused"] == 0
+    more = precompute(lit(volume, [SUN, SKY, SUN2], 1.0, size=24), volume, "draft", store)
+    assert more.stats["components_reused"] == 2 and more.stats["graph_reused"]
+    n = len(first.radiance) // 2  # components: the suns in order, then the sky
+    np.testing.assert_array_equal(more.radiance[:n], first.radiance[:n])
+    np.testing.assert_array_equal(more.radiance[2 * n :], first.radiance[n:])
+    np.testing.assert_array_equal(more.field.tau_light, first.field.tau_light)
+    np.testing.assert_array_equal(more.field.array("radiance_ms_2"), first.field.array("radiance_ms_1"))
+    assert [c["type"] for c in more.field.meta["lights"]] == ["directional", "directional", "sky"]
+    assert more.field.meta["lights"][1]["tau"] == "tau_light_1" and more.field.array("tau_light_1").max() > 1
+    swapped = precompute(lit(volume, [SKY, SUN2, SUN], 1.0, size=24), volume, "draft", store)
+    assert swapped.keys["radiance_key"] != more.keys["radiance_key"]
+    assert swapped.stats["components_reused"] == 3
+
+
 @pytest.mark.parametrize("estimator", ["gather", "field"])
 def test_new_intensities_re_mix_the_cache_with_no_new_kernel(two_suns, estimator):
     from cloudgraph.lights import Lights

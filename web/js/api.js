@@ -143,6 +143,16 @@ export class Api {
     return this.json("/v1/volumes", { method: "POST", form, what: `Uploading “${file.name}”` });
   }
 
+  listEnvironments() {
+    return this.json("/v1/environments", { what: "Listing environment maps" }).then((r) => r.body);
+  }
+
+  uploadEnvironment(file) {
+    const form = new FormData();
+    form.append("file", file, file.name);
+    return this.json("/v1/environments", { method: "POST", form, what: `Uploading “${file.name}”` });
+  }
+
   createCache(body, signal) {
     return this.json("/v1/caches", { method: "POST", json: body, signal, what: "Precompute" });
   }

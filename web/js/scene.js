@@ -79,6 +79,13 @@ export class ScenePanel {
     this.sunColour = $("#sun-colour");
     this.sky = $("#sky");
     this.skyColour = $("#sky-colour");
+    this.envSelect = $("#env-select");
+    this.envScale = $("#env-scale");
+    this.envFile = $("#env-file");
+    this.envState = $("#env-state");
+    this.envSelect.addEventListener("change", () => this.onChange());
+    this.envScale.addEventListener("change", () => this.onChange());
+    this.envFile.addEventListener("change", () => this.uploadEnvironment());
     this.sunList = $("#sun-list");
     this.sunAdd = $("#sun-add");
     this.sunAdd.addEventListener("click", () => this.addSun());
@@ -150,8 +157,45 @@ export class ScenePanel {
     return AXES[this.upAxis.value] || AXES.y;
   }
 
+  /** Reloads the environment maps' list; selects ``selectId`` if given, else keeps the choice. */
+  async refreshEnvironments(selectId = "") {
+    let list;
+    try {
+      list = await this.api.listEnvironments();
+    } catch (err) {
+      this.status.error(err);
+      return;
+    }
+    const before = this.envSelect.value;
+    const options = list.map((e) => h("option", { value: e.id }, `${e.filename} · ${e.width}×${e.height}`));
+    this.envSelect.replaceChildren(h("option", { value: "" }, "none"), ...options);
+    const want = [selectId, before].find((id) => id && list.some((e) => e.id === id)) || "";
+    this.envSelect.value = want;
+    if (want !== before) this.onChange();
+  }
+
+  async uploadEnvironment() {
+    const file = this.envFile.files && this.envFile.files[0];
+    if (!file) return;
+    setText(this.envState, `uploading ${file.name}…`);
+    this.envState.className = "busy";
+    try {
+      const { body } = await this.api.uploadEnvironment(file);
+      await this.refreshEnvironments(body.id); // (selects it: the scene changes)
+      setText(this.envState, `uploaded ${file.name}`);
+      this.envState.className = "ok";
+    } catch (err) {
+      setText(this.envState, `upload of ${file.name} failed`);
+      this.envState.className = "failed";
+      this.status.error(err);
+    } finally {
+      this.envFile.value = "";
+    }
+  }
+
   /** Reloads the list; selects ``selectId`` if given and present, else keeps or picks the first. */
   async refresh(selectId = "") {
+    this.refreshEnvironments();
     let list;
     try {
       list = await this.api.listVolumes();
@@ -226,15 +270,17 @@ export class ScenePanel {
       suns.push(sunSpec(readNumber(azIn, { min: -360, max: 360 }), readNumber(elIn, { min: -90, max: 90 }), eIn, colour, this.axes(), n));
     });
     const sky = readNumber(this.sky, { min: 0 });
-    const all = sky > 0 ? [...suns, { type: "sky", radiance: tinted(this.skyColour.value, sky) }] : suns;
-    if (all.length > MAX_LIGHTS) throw new Error(`lights: at most ${MAX_LIGHTS} in all (remove a sun or the sky)`);
-    // One sun alone: a v1 scene's one light; several or a sky: v1.1's lights (the cache holds
-    // them apart, so their intensities are not part of it: key())
+    const all = sky > 0 ? [...suns, { type: "sky", radiance: tinted(this.skyColour.value, sky) }] : [...suns];
+    if (this.envSelect.value) all.push({ type: "envmap", id: this.envSelect.value, scale: readNumber(this.envScale, { min: 0 }) });
+    if (all.length > MAX_LIGHTS) throw new Error(`lights: at most ${MAX_LIGHTS} in all (remove a sun, the sky or the map)`);
+    // One sun alone: a v1 scene's one light; more lights: v1.1's lights (the cache holds them
+    // apart, so their intensities are not part of it: key())
     const lightPart = all.length > 1 ? { lights: all } : { light: suns[0] };
     return { volume: { id: info.id }, medium, ...lightPart, lightPart, quality: this.quality.value };
   }
 
-  /** The lights' intensities, for the real-time view's mix: { suns: [[3] per sun], sky: [3] }. */
+  /** The lights' intensities, for the real-time view's mix: { suns: [[3] per sun], sky: [3],
+   * envmaps: [[3] scale per map] }. */
   mix() {
     try {
       const v = this.values();
@@ -244,6 +290,7 @@ export class ScenePanel {
       return {
         suns: lights.filter((l) => l.type === "directional").map((l) => rgb(l.irradiance)),
         sky: sky ? sky.radiance : [0, 0, 0],
+        envmaps: lights.filter((l) => l.type === "envmap").map((l) => rgb(l.scale)),
       };
     } catch {
       return null;
@@ -308,11 +355,11 @@ export class ScenePanel {
   }
 
   /** What a radiance cache depends on, as a string (null when the inputs are invalid): for
-   * v1.1 lights their kinds and directions only (new intensities are the same cache). */
+   * v1.1 lights their kinds, directions and maps only (new intensities are the same cache). */
   key() {
     try {
       const v = this.values();
-      const light = v.lights ? v.lights.map((l) => ({ type: l.type, direction: l.direction })) : v.light;
+      const light = v.lights ? v.lights.map((l) => ({ type: l.type, direction: l.direction, id: l.id })) : v.light;
       return JSON.stringify([v.volume, v.medium, light, v.quality]);
     } catch {
       return null;
