@@ -4,9 +4,10 @@ Per scene, light setup (sun + uniform sky, two suns), camera (side- and back-lit
 albedo: volpath with Mitsuba's emitters (Russian roulette off) as the reference, ``gather`` at
 1024 spp and ``field`` at 16 spp on the cache, both also on the bins that show the cloud (the
 reference over 2 % from the bare sky), the relight (a new light list on the graph already made)
-against the first precompute, and a re-mix (new intensities of the same lights: set_lights and a
-field frame). Rows are printed and written as they finish (bench/results/lights-<date>.json and
-.md).
+against the first precompute, the relight that adds one more sun to the setup's cache, and a
+re-mix (new intensities of the same lights: set_lights and a field frame). Rows are printed and
+written as they finish (bench/results/lights-<date>.json and .md). ``--timing`` leaves out the
+references and the renders: the precompute times only.
 
     .venv/bin/python -m bench.lights --scenes sphere noise holdout --ref-spp 4096
 """
@@ -48,6 +49,10 @@ SETUPS = {
 }
 
 
+#: The sun that add_sun_s adds to a setup's lights.
+EXTRA_SUN = {"type": "directional", "direction": [0.3, -0.9, 0.3], "irradiance": 0.5}
+
+
 def write_envmap(path: Path) -> str:
     """The sun+envmap setup's map: 128 x 64, radiance 2 at the top row to 0.2 at the bottom,
     bluer downwards."""
@@ -76,6 +81,7 @@ COLUMNS = [
     "ref_spp",
     "pre_s",
     "relight_s",
+    "add_sun_s",
     "remix_ms",
     "field_MB",
 ]
@@ -100,7 +106,7 @@ def cloud_pct(image, ref, mask) -> float:
     return float(100 * np.abs(a - b).mean() / max(b.mean(), 1e-12))
 
 
-def run(scenes, albedos, setups, ref_spp: int, gather_spp: int, size: int, quality: str, out_dir: Path):
+def run(scenes, albedos, setups, ref_spp: int, gather_spp: int, size: int, quality: str, out_dir: Path, timing=False):
     store = CacheStore(out_dir.parent / "cache-lights")
     ref_dir = out_dir.parent / "reference-cache"
     stem = out_dir / f"lights-{time.strftime('%Y%m%d-%H%M%S')}"
@@ -117,6 +123,14 @@ def run(scenes, albedos, setups, ref_spp: int, gather_spp: int, size: int, quali
                 t0 = time.perf_counter()
                 cache = precompute(lit, bs.volume, quality, store)  # a relight: the graph reused
                 relight = time.perf_counter() - t0
+                t0 = time.perf_counter()  # one more sun: that component alone is computed
+                precompute(with_lights(base, SETUPS[setup] + [EXTRA_SUN], envmap), bs.volume, quality, store)
+                times = {"pre_s": round(pre, 2), "relight_s": round(relight, 2), "add_sun_s": round(time.perf_counter() - t0, 2)}
+                if timing:
+                    rows.append({"scene": bs.name, "lights": setup, "albedo": albedo, **times})
+                    print(row_md(rows[-1], COLUMNS), flush=True)
+                    _write(stem, rows, ref_spp, gather_spp, size, quality)
+                    continue
                 for cam_name, camera in cameras(bs.volume, LIGHT, size).items():
                     scene = with_lights(_scene(bs, camera, albedo, gather_spp, seed=0), SETUPS[setup], envmap)
                     ref = reference(bs, scene, ref_spp, ref_dir)
@@ -138,12 +152,7 @@ def run(scenes, albedos, setups, ref_spp: int, gather_spp: int, size: int, quali
                     t0 = time.perf_counter()
                     r.render(scene.camera, 16, 1, "field", lights)
                     row["remix_ms"] = round(1000 * (time.perf_counter() - t0), 1)
-                    row.update(
-                        ref_spp=ref_spp,
-                        pre_s=round(pre, 2),
-                        relight_s=round(relight, 2),
-                        field_MB=round(cache.stats["field_bytes"] / 2**20, 2),
-                    )
+                    row.update(ref_spp=ref_spp, **times, field_MB=round(cache.stats["field_bytes"] / 2**20, 2))
                     rows.append(row)
                     print(row_md(row, COLUMNS), flush=True)
                     _write(stem, rows, ref_spp, gather_spp, size, quality)
@@ -155,7 +164,8 @@ def _write(stem: Path, rows, ref_spp, gather_spp, size, quality) -> None:
         "*_mean: image mean / reference's; *_binned_pct: 4x4-binned relMAE (%) over the image, *_cloud_pct "
         "over the bins where the cloud shows (reference over 2 % from the bare sky; sun+envmap: every bin); "
         "pre_s: the first precompute (graph and the sun alone); relight_s: the setup's precompute on that "
-        "graph; remix_ms: new intensities and a 16-spp field frame."
+        "graph; add_sun_s: the setup's lights and one more sun, on the setup's cache; remix_ms: new "
+        "intensities and a 16-spp field frame."
     )
     reference = "Mitsuba's directional, constant and envmap emitters"
     settings = {"quality": quality, "size": size, "gather_spp": gather_spp, "ref_spp": ref_spp}
@@ -168,9 +178,10 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_accuracy_args(p, ["sphere", "noise", "holdout"])
     p.add_argument("--setups", nargs="*", default=list(SETUPS), choices=list(SETUPS))
+    p.add_argument("--timing", action="store_true", help="precompute times only: no references, no renders")
     a = p.parse_args(argv)
     set_variant()
-    run(a.scenes, a.albedo, a.setups, a.ref_spp, a.gather_spp, a.size, a.quality, Path(a.out))
+    run(a.scenes, a.albedo, a.setups, a.ref_spp, a.gather_spp, a.size, a.quality, Path(a.out), a.timing)
 
 
 if __name__ == "__main__":

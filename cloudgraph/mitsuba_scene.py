@@ -124,7 +124,7 @@ def scene_dict(scene: Scene, volume: Volume, integrator: dict | None = None) -> 
         "integrator": integrator,
         "sensor": sensor_dict(scene.camera, volume, scene.render.spp, scene.render.seed),
         # (a v1 scene's one light keeps its name: "light")
-        **{"light" if i == 0 else f"light_{i}": emitter_dict(light) for i, light in enumerate(lights)},
+        **{"light" if i == 0 else f"light_{i}": emitter for i, emitter in enumerate(emitter_dicts(lights))},
         "medium_box": {
             "type": "cube",
             "to_world": mi.ScalarTransform4f(box_to_world(volume).tolist()),
@@ -132,6 +132,50 @@ def scene_dict(scene: Scene, volume: Volume, integrator: dict | None = None) -> 
             "interior": medium_dict(volume, scene),
         },
     }
+
+
+def emitter_dicts(lights) -> list[dict]:
+    """The scene's lights as Mitsuba's emitters (emitter_dict), in order; Mitsuba takes one
+    environment emitter a scene, so several (skies, maps) are one, their sum
+    (:func:`environment_sum`), in the first one's place."""
+    env = [li for li in lights if li.type in ("sky", "envmap")]
+    if len(env) <= 1:
+        return [emitter_dict(li) for li in lights]
+    out = []
+    for li in lights:
+        if li.type not in ("sky", "envmap"):
+            out.append(emitter_dict(li))
+        elif li is env[0]:
+            out.append(environment_sum(env))
+    return out
+
+
+def environment_sum(env) -> dict:
+    """One environment emitter whose radiance is the sum of several skies' and maps' (each map
+    times its scale): a ``constant`` for skies alone, else an ``envmap`` of the summed image at
+    the largest map's resolution (others resampled to it, nearest texel)."""
+    import mitsuba as mi
+
+    sky = np.sum([li.intensity_rgb() for li in env if li.type == "sky"] or [(0.0, 0.0, 0.0)], axis=0)
+    maps = [li for li in env if li.type == "envmap"]
+    if not maps:
+        return {"type": "constant", "radiance": {"type": "rgb", "value": sky.tolist()}}
+    images = [(_rgb_image(li.path), float(li.scale)) for li in maps]
+    h, w = max(im.shape[0] for im, _ in images), max(im.shape[1] for im, _ in images)
+    total = np.zeros((h, w, 3), np.float32) + sky.astype(np.float32)
+    for im, scale in images:
+        rows = (np.arange(h) * im.shape[0]) // h
+        cols = (np.arange(w) * im.shape[1]) // w
+        total += scale * im[rows[:, None], cols[None, :]]
+    return {"type": "envmap", "bitmap": mi.Bitmap(total)}
+
+
+def _rgb_image(path) -> np.ndarray:
+    """(h, w, 3) float32 linear RGB of an image file, read by Mitsuba."""
+    import mitsuba as mi
+
+    bitmap = mi.Bitmap(str(path)).convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False)
+    return np.array(bitmap, np.float32)
 
 
 def emitter_dict(light) -> dict:

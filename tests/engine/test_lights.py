@@ -336,6 +336,28 @@ def test_the_field_keeps_the_map_the_server_sees_behind_the_medium(variant, tmp_
     assert np.abs(0.8 * latlong_lookup(background[:, ::-1], d[miss]) - server).max() > 0.2
 
 
+def test_several_environments_are_one_mitsuba_emitter_of_their_sum(variant, tmp_path):
+    # Mitsuba takes one environment emitter a scene: volpath's reference of skies and maps
+    # together sees their sum, in every direction
+    import mitsuba as mi
+
+    from cloudgraph.mitsuba_scene import envmap_emitter, scene_dict
+    from cloudgraph.tracing import envmap_seen, to_jit
+
+    maps = envmaps(tmp_path)
+    lights = [SUN, SKY, {"type": "envmap", "path": maps["gradient"], "scale": 0.5}, {"type": "sky", "radiance": 0.1}]
+    volume = sphere_volume(8)
+    scene = lit(volume, lights, 1.0, size=8)
+    mitsuba = mi.load_dict(scene_dict(scene, volume))
+    assert len(mitsuba.emitters()) == 2  # the sun, and one environment
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(200, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    seen = envmap_seen(mitsuba.environment(), to_jit(mi.Vector3f, d))
+    expected = np.add(SKY["radiance"], 0.1)[:, None] + 0.5 * np.array(envmap_seen(envmap_emitter(maps["gradient"]), to_jit(mi.Vector3f, d)))
+    np.testing.assert_allclose(np.array(seen), expected, rtol=1e-4)
+
+
 @pytest.mark.parametrize(
     "light, words",
     [
