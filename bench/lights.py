@@ -106,7 +106,17 @@ def cloud_pct(image, ref, mask) -> float:
     return float(100 * np.abs(a - b).mean() / max(b.mean(), 1e-12))
 
 
-def run(scenes, albedos, setups, ref_spp: int, gather_spp: int, size: int, quality: str, out_dir: Path, timing=False):
+def run(
+    scenes,
+    albedos,
+    setups,
+    ref_spp: int,
+    gather_spp: int,
+    size: int,
+    quality: str,
+    out_dir: Path,
+    timing=False,
+):
     store = CacheStore(out_dir.parent / "cache-lights")
     ref_dir = out_dir.parent / "reference-cache"
     stem = out_dir / f"lights-{time.strftime('%Y%m%d-%H%M%S')}"
@@ -125,7 +135,11 @@ def run(scenes, albedos, setups, ref_spp: int, gather_spp: int, size: int, quali
                 relight = time.perf_counter() - t0
                 t0 = time.perf_counter()  # one more sun: that component alone is computed
                 precompute(with_lights(base, SETUPS[setup] + [EXTRA_SUN], envmap), bs.volume, quality, store)
-                times = {"pre_s": round(pre, 2), "relight_s": round(relight, 2), "add_sun_s": round(time.perf_counter() - t0, 2)}
+                times = {
+                    "pre_s": round(pre, 2),
+                    "relight_s": round(relight, 2),
+                    "add_sun_s": round(time.perf_counter() - t0, 2),
+                }
                 if timing:
                     rows.append({"scene": bs.name, "lights": setup, "albedo": albedo, **times})
                     print(row_md(rows[-1], COLUMNS), flush=True)
@@ -152,7 +166,9 @@ def run(scenes, albedos, setups, ref_spp: int, gather_spp: int, size: int, quali
                     t0 = time.perf_counter()
                     r.render(scene.camera, 16, 1, "field", lights)
                     row["remix_ms"] = round(1000 * (time.perf_counter() - t0), 1)
-                    row.update(ref_spp=ref_spp, **times, field_MB=round(cache.stats["field_bytes"] / 2**20, 2))
+                    row.update(
+                        ref_spp=ref_spp, **times, field_MB=round(cache.stats["field_bytes"] / 2**20, 2)
+                    )
                     rows.append(row)
                     print(row_md(row, COLUMNS), flush=True)
                     _write(stem, rows, ref_spp, gather_spp, size, quality)

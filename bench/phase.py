@@ -87,7 +87,15 @@ def own_noise(bs, scene, ref: np.ndarray, spp: int) -> float:
 
 
 def run(
-    scenes, gs, albedos, ref_spp: int, gather_spp: int, size: int, quality: str, out_dir: Path, approaches=None
+    scenes,
+    gs,
+    albedos,
+    ref_spp: int,
+    gather_spp: int,
+    size: int,
+    quality: str,
+    out_dir: Path,
+    approaches=None,
 ):
     from cloudgraph.phase import phase_bounces
 
@@ -179,7 +187,10 @@ def main(argv=None) -> None:
     add_accuracy_args(p)
     p.add_argument("--g", nargs="*", type=float, default=[0.5, 0.85])
     p.add_argument(
-        "--approaches", nargs="*", choices=["sim1", "simK", "isoK", "iso1"], help="gather's approaches to run (all)"
+        "--approaches",
+        nargs="*",
+        choices=["sim1", "simK", "isoK", "iso1"],
+        help="gather's approaches to run (all)",
     )
     a = p.parse_args(argv)
     set_variant()

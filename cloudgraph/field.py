@@ -313,7 +313,9 @@ def bake_field(
             if c > 0 and "tau" in entry:
                 extra[entry["tau"]] = taus[c]
             if entry["type"] == "envmap":
-                extra[entry["background"]] = background_map(lights.envmaps[c - lights.count + len(lights.envmaps)])
+                extra[entry["background"]] = background_map(
+                    lights.envmaps[c - lights.count + len(lights.envmaps)]
+                )
             if c in shapes:
                 entry["shape"] = _shape_entry(shape_name(c), lights, c)
                 extra[entry["shape"]["array"]] = shapes[c]

@@ -321,10 +321,16 @@ def _composed(scene, volume, quality, store, progress, chunks, keys, build_overr
     rkey = keys["radiance_key"]
     radiance = np.concatenate([p.radiance for p in parts])  # (K N, 3): component after component
     radiance_gather = np.concatenate([p.radiance_gather for p in parts])
-    times = ("lighting_s", "transport_s", "field_s", "field_tau_s", "field_ms_s")
+    # the time of what was computed now (a found part's stats hold the times it took once)
+    times = {"radiance": ("lighting_s", "transport_s"), "field": ("field_s", "field_tau_s", "field_ms_s")}
+    spent = {
+        k: round(sum(p.stats.get(k, 0.0) for p in parts if not p.stats[f"{what}_reused"]), 3)
+        for what, keys in times.items()
+        for k in keys
+    }
     rstats = {
         **{k: v for k, v in parts[0].stats.items() if not k.endswith("_bytes")},
-        **{k: round(sum(p.stats.get(k, 0.0) for p in parts), 3) for k in times},
+        **spent,
         "light_components": len(parts),
         # components whose cache was there already: their lighting, transport and bake reused
         "components_reused": sum(p.stats["radiance_reused"] and p.stats["field_reused"] for p in parts),

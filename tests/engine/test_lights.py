@@ -345,7 +345,12 @@ def test_several_environments_are_one_mitsuba_emitter_of_their_sum(variant, tmp_
     from cloudgraph.tracing import envmap_seen, to_jit
 
     maps = envmaps(tmp_path)
-    lights = [SUN, SKY, {"type": "envmap", "path": maps["gradient"], "scale": 0.5}, {"type": "sky", "radiance": 0.1}]
+    lights = [
+        SUN,
+        SKY,
+        {"type": "envmap", "path": maps["gradient"], "scale": 0.5},
+        {"type": "sky", "radiance": 0.1},
+    ]
     volume = sphere_volume(8)
     scene = lit(volume, lights, 1.0, size=8)
     mitsuba = mi.load_dict(scene_dict(scene, volume))
@@ -354,7 +359,9 @@ def test_several_environments_are_one_mitsuba_emitter_of_their_sum(variant, tmp_
     d = rng.normal(size=(200, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     seen = envmap_seen(mitsuba.environment(), to_jit(mi.Vector3f, d))
-    expected = np.add(SKY["radiance"], 0.1)[:, None] + 0.5 * np.array(envmap_seen(envmap_emitter(maps["gradient"]), to_jit(mi.Vector3f, d)))
+    expected = np.add(SKY["radiance"], 0.1)[:, None] + 0.5 * np.array(
+        envmap_seen(envmap_emitter(maps["gradient"]), to_jit(mi.Vector3f, d))
+    )
     np.testing.assert_allclose(np.array(seen), expected, rtol=1e-4)
 
 

@@ -185,7 +185,9 @@ def add_lights(field: dict, directions, sky: bool = False, seed: int = 5, envmap
     lights = []
     for k, direction in enumerate(directions):
         entry = {"type": "directional", "direction": list(map(float, direction))}
-        entry["tau"], entry["ms"] = ("tau_light", "radiance_ms") if k == 0 else (f"tau_light_{k}", f"radiance_ms_{k}")
+        entry["tau"], entry["ms"] = (
+            ("tau_light", "radiance_ms") if k == 0 else (f"tau_light_{k}", f"radiance_ms_{k}")
+        )
         if k > 0:
             # optical depth along the light's way through the (unit) box, in the sigma > 0 body
             dz = np.asarray(direction, float)
@@ -205,7 +207,9 @@ def add_lights(field: dict, directions, sky: bool = False, seed: int = 5, envmap
         ms = np.stack([0.02 + 0.03 * mxx, 0.03 + 0.01 * mzz, 0.02 + 0.02 * myy], axis=-1)
         _put(field, "radiance_ms_env", ms, ms.reshape(-1, 3).max(axis=0) / 1000.0)
         v, u = np.meshgrid((np.arange(32) + 0.5) / 32, (np.arange(64) + 0.5) / 64, indexing="ij")
-        bg = np.stack([0.5 + 0.4 * np.sin(2 * np.pi * u), 0.3 + 0.5 * v, 0.6 - 0.3 * np.cos(2 * np.pi * u) * v], -1)
+        bg = np.stack(
+            [0.5 + 0.4 * np.sin(2 * np.pi * u), 0.3 + 0.5 * v, 0.6 - 0.3 * np.cos(2 * np.pi * u) * v], -1
+        )
         _put(field, "background_env", bg, bg.reshape(-1, 3).max(axis=0) / 1000.0)
         lights.append({"type": "envmap", "ms": "radiance_ms_env", "background": "background_env"})
     del h["light"]
@@ -282,12 +286,21 @@ def reference_render(
         suns_e, maps_e = iter(E), iter(np.asarray(e, float) for e in mix.get("envmaps", []))
         kinds = {"sky": lambda: sky, "directional": lambda: next(suns_e), "envmap": lambda: next(maps_e)}
         weights = [kinds[c["type"]]() for c in h["lights"]]
-        maps = [(w, v[c["background"]]) for w, c in zip(weights, h["lights"], strict=True) if c["type"] == "envmap"]
+        maps = [
+            (w, v[c["background"]])
+            for w, c in zip(weights, h["lights"], strict=True)
+            if c["type"] == "envmap"
+        ]
         rad_grid = sum(w * v[c["ms"]] for w, c in zip(weights, h["lights"], strict=True))
         if not any(c["type"] == "sky" for c in h["lights"]):
             sky = np.zeros(3)
     else:
-        E, sky, rad_grid, maps = [np.asarray(h["light"]["irradiance"], float)], np.zeros(3), v["radiance_ms"], []
+        E, sky, rad_grid, maps = (
+            [np.asarray(h["light"]["irradiance"], float)],
+            np.zeros(3),
+            v["radiance_ms"],
+            [],
+        )
     m = np.asarray(h["unit_to_world"], float)
     inv = np.linalg.inv(m)
     d = pixel_rays(

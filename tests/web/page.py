@@ -5,6 +5,7 @@ orbiting, the camera, and a page opened on smoke1's draft cache."""
 from __future__ import annotations
 
 import base64
+import contextlib
 import json
 import math
 
@@ -177,3 +178,40 @@ def compare_realtime(page) -> dict:
     assert page.get_attribute("#compare-result", "data-state") == "done", errors_shown(page)
     result = page.eval_on_selector("#compare-result", "e => ({...e.dataset})")
     return {**result, "text": page.inner_text("#compare-result")}
+
+
+def wait_relit(page, old_key: str) -> None:
+    """Waits for the relight the last change started: its field (another key than ``old_key``)
+    drawn at rest."""
+    page.wait_for_selector("#relight-info[data-seconds]", timeout=600_000)
+    page.wait_for_function(
+        f"() => {{ const k = document.querySelector('#viewport').dataset.fieldKey;"
+        f" return k && k !== '{old_key}'; }}",
+        timeout=120_000,
+    )
+    wait_rest(page, frames_drawn(page) - 1)
+
+
+@contextlib.contextmanager
+def api_requests(page):
+    """The URLs of the API requests (/v1/) the page makes inside the block, in a list."""
+    urls = []
+
+    def seen(request):
+        if "/v1/" in request.url:
+            urls.append(request.url)
+
+    page.on("request", seen)
+    try:
+        yield urls
+    finally:
+        page.remove_listener("request", seen)
+
+
+def assert_orbit_holds(page, what: str, min_fps: float) -> None:
+    """Orbiting draws at least ``min_fps`` frames a second, never below 128 px inside."""
+    r = orbit(page, ms=3000, dx=150)
+    print(f"{what} orbit: {r['fps']:.1f} frames/s, internal {min(r['sizes'])}..{max(r['sizes'])} px")
+    assert r["fps"] >= min_fps, f"{r['fps']:.1f} frames/s while orbiting (sizes {r['sizes'][-10:]})"
+    assert r["sizes"] and min(r["sizes"]) >= 128, r["sizes"]
+    assert errors_shown(page) == []

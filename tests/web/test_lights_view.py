@@ -44,7 +44,12 @@ def test_the_page_draws_several_suns_and_a_sky_as_the_numpy_march(page, suns, sk
     mix = {"suns": rng.uniform(0.5, 3.0, (suns, 3)).round(3).tolist(), "sky": [0.2, 0.3, 0.5]}
     cams = cameras(field)
     first_only = {"suns": mix["suns"][:1], "sky": [0, 0, 0]}  # the other lights off
-    for cam, img, one in zip(cams, render(page, field, cams, fast=fast, mix=mix), render(page, field, cams, mix=first_only), strict=True):
+    for cam, img, one in zip(
+        cams,
+        render(page, field, cams, fast=fast, mix=mix),
+        render(page, field, cams, mix=first_only),
+        strict=True,
+    ):
         ref = reference_render(field, cam, mix=mix)
         assert ref.mean() > 5, "the reference image is black: a useless test"
         assert rel_mae(img, ref) < (0.03 if fast else 0.02)
@@ -60,9 +65,17 @@ def test_the_page_draws_an_environment_map_behind_and_in_the_cloud(page, fast): 
     mix = {"suns": [[1.5, 1.4, 1.3]], "sky": [0.05, 0.05, 0.1], "envmaps": [[0.8, 0.8, 0.8]]}
     lo, hi = (np.asarray(v) for v in field["header"]["world_bbox"])
     c, r = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
-    cams = [camera(c + r * np.array([0.3, 0.4, 1.2]), c, fov=100), camera(c + r * np.array([-1.0, -0.6, 0.2]), c, fov=120)]
+    cams = [
+        camera(c + r * np.array([0.3, 0.4, 1.2]), c, fov=100),
+        camera(c + r * np.array([-1.0, -0.6, 0.2]), c, fov=120),
+    ]
     no_map = {**mix, "envmaps": [[0, 0, 0]]}
-    for cam, img, without in zip(cams, render(page, field, cams, fast=fast, mix=mix), render(page, field, cams, mix=no_map), strict=True):
+    for cam, img, without in zip(
+        cams,
+        render(page, field, cams, fast=fast, mix=mix),
+        render(page, field, cams, mix=no_map),
+        strict=True,
+    ):
         ref = reference_render(field, cam, mix=mix)
         assert rel_mae(img, ref) < (0.03 if fast else 0.02)
         assert rel_mae(without, ref) > 0.3, "the map changed little: a useless test"
@@ -94,7 +107,7 @@ def test_each_sun_s_view_terms_with_forward_scattering(page):  # noqa: F811
     add_view_terms(first, seed=3, sun=0)  # the third sun's terms left out
     mix = {"suns": [[0.3, 0.3, 0.3], [0.2, 0.18, 0.16], [0.3, 0.25, 0.2]]}
     cams = cameras(field)
-    images = zip(*(render(page, f, cams, exposure=2.0, mix=mix) for f in (field, plain, first)))
+    images = zip(*(render(page, f, cams, exposure=2.0, mix=mix) for f in (field, plain, first)), strict=True)
     for cam, (img, without, one) in zip(cams, images, strict=True):
         ref = reference_render(field, cam, exposure=2.0, lobes=[(1.0, 0.7)], mix=mix)
         assert ref.mean() > 5, "the reference image is black: a useless test"
@@ -111,7 +124,8 @@ def test_intensities_and_limits_in_words(page):  # noqa: F811
         const grid = { shape: [4, 4, 4] };
         const shaped = (n) => ({ unit: true, suns: Array.from({ length: n }, (_, k) => ({ tau: `t${k}`,
           shape: { array: 's' } })), components: [], arrays: { sigma_t: grid, tau_light: grid,
-          radiance_ms: { shape: [2, 2, 2, 3] }, majorant: { shape: [1, 1, 1] }, s: { shape: [2, 2, 2, 14] } } });
+          radiance_ms: { shape: [2, 2, 2, 3] }, majorant: { shape: [1, 1, 1] },
+          s: { shape: [2, 2, 2, 14] } } });
         const field = { unit: true, suns: [{}, {}], components: [{ type: 'directional' }, { type: 'sky' },
           { type: 'directional' }] };
         return { units: view.gl.getParameter(view.gl.MAX_TEXTURE_IMAGE_UNITS),
@@ -124,6 +138,14 @@ def test_intensities_and_limits_in_words(page):  # noqa: F811
     assert r["one"] == ""
     assert f"need 37 texture units and this device has {r['units']}" in r["eight"] and "server" in r["eight"]
     # the second sun is past the mix's list: off; the sky's radiance is the one behind the cloud
-    assert r["mixed"] == {"suns": [[1, 2, 3], [0, 0, 0]], "components": [[1, 2, 3], [4, 5, 6], [0, 0, 0]], "sky": [4, 5, 6]}
-    assert r["none"] == {"suns": [[1, 1, 1], [1, 1, 1]], "components": [[1, 1, 1], [0, 0, 0], [1, 1, 1]], "sky": [0, 0, 0]}
+    assert r["mixed"] == {
+        "suns": [[1, 2, 3], [0, 0, 0]],
+        "components": [[1, 2, 3], [4, 5, 6], [0, 0, 0]],
+        "sky": [4, 5, 6],
+    }
+    assert r["none"] == {
+        "suns": [[1, 1, 1], [1, 1, 1]],
+        "components": [[1, 1, 1], [0, 0, 0], [1, 1, 1]],
+        "sky": [0, 0, 0],
+    }
     assert r["v1"] == {"suns": [[2, 2, 2]], "components": [[1, 1, 1]], "sky": [0, 0, 0]}

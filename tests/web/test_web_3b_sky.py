@@ -7,6 +7,7 @@ brings back the v1 cache."""
 from __future__ import annotations
 
 from .page import (
+    api_requests,
     assert_realtime_is_the_server_field,
     errors_shown,
     frames_drawn,
@@ -49,14 +50,8 @@ def test_a_sky_relights_then_is_drawn_behind_the_cloud_like_the_server(page):
 
 
 def test_new_intensities_of_the_lights_re_draw_with_no_request(page):
-    requests = []
-
-    def seen(request):
-        requests.append(request.url)
-
-    page.on("request", seen)
-    try:
-        key = page.get_attribute("#viewport", "data-field-key")
+    key = page.get_attribute("#viewport", "data-field-key")
+    with api_requests(page) as requests:
         before = corners(shown_pixels(page))
         frames = frames_drawn(page)
         change(page, "#sky", "1.5")  # brighter sky
@@ -65,10 +60,8 @@ def test_new_intensities_of_the_lights_re_draw_with_no_request(page):
         frames = frames_drawn(page)
         change(page, "#irradiance", "2")  # a brighter sun: the same cache
         wait_rest(page, frames)
-    finally:
-        page.remove_listener("request", seen)
     assert page.get_attribute("#viewport", "data-field-key") == key
-    assert [u for u in requests if "/v1/" in u] == [], requests
+    assert requests == []
     assert brighter > before + 20, (before, brighter)
     assert errors_shown(page) == []
     shot(page, "08f-sky-remixed")

@@ -6,7 +6,15 @@ back the cache it had."""
 
 from __future__ import annotations
 
-from .page import assert_realtime_is_the_server_field, errors_shown, frames_drawn, shot, wait_rest
+from .page import (
+    assert_orbit_holds,
+    assert_realtime_is_the_server_field,
+    errors_shown,
+    frames_drawn,
+    shot,
+    wait_rest,
+)
+from .test_web_2_realtime_view import MIN_ORBIT_FPS
 from .test_web_3_compare_relight import MAX_FIELD_REL_MAE
 
 #: The isotropic cache's field key (the last step brings it back).
@@ -31,6 +39,12 @@ def test_a_forward_scattering_cloud_is_drawn_like_the_server_draws_it(page):
     wait_rest(page, frames_drawn(page) - 1)
     shot(page, "08h-forward-scattering")
     assert_realtime_is_the_server_field(page, "g = 0.85", MAX_FIELD_REL_MAE)
+
+
+def test_the_forward_scattering_view_holds_its_frame_rate_while_orbiting(page):
+    # every frame of an anisotropic field takes the exact march (six fetches a step): the frame
+    # budget lowers its resolution, never below 128 px
+    assert_orbit_holds(page, "g = 0.85", MIN_ORBIT_FPS)
 
 
 def test_the_isotropic_phase_brings_back_its_cache(page):

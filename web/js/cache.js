@@ -161,6 +161,8 @@ export class CachePanel {
       ["lighting", s.radiance_reused ? "reused" : formatSeconds(s.lighting_s)],
       ["transport", s.radiance_reused ? "reused" : formatSeconds(s.transport_s)],
       ["field bake", s.field_reused ? "reused" : formatSeconds(s.field_s)],
+      // a cache of several lights: each light's own, those found reused (a relight)
+      ...(s.light_components > 1 ? [["lights", `${s.light_components} (${s.components_reused || 0} reused)`]] : []),
       ["field", s.field_bytes != null ? formatBytes(s.field_bytes) : "–"],
       ["bytes", `${formatBytes(bytes)} (graph ${formatBytes(s.graph_bytes)}, radiance ${formatBytes(s.radiance_bytes)})`],
       ["node radius", s.radius != null ? Number(s.radius).toPrecision(3) : "–"],
