@@ -60,13 +60,17 @@ from .phase import (
 )
 from .spatial import NodeGrid, node_bins
 from .tracing import (
+    ISOTROPIC_PDF,
     block_majorant,
     cpu_threads,
+    envmap_nee,
+    envmap_pdf,
     envmap_seen,
     exponential_segment,
     from_jit,
     jit_rng,
     linear_texture,
+    power_heuristic,
     step_length,
     to_jit,
     towards_light,
@@ -495,7 +499,9 @@ def _gather_ms(
 ) -> np.ndarray:
     """(M, 3) L_ms at (M, 3) world points: MS_DIRECTIONS flights each, averaged (see bake_field);
     ``sky``: the radiance of a uniform sky that flights leaving the box see (0: none); ``env``:
-    an environment map's emitter that they see instead (None: none)."""
+    an environment map's emitter that they see instead (None: none), and that as many
+    directions drawn from the map see too (tracing.envmap_nee: the two weighted by the power
+    heuristic, so that a small bright spot in the map is found)."""
     m, k = len(points), MS_DIRECTIONS
     # Spherical Fibonacci directions, the same set for every point, in a random frame per point
     i = np.arange(k) + 0.5
@@ -512,6 +518,8 @@ def _gather_ms(
     d = fr.to_world(w)
     o = dr.gather(mi.Point3f, to_jit(mi.Point3f, points), point)
     L = _march_ms(medium, G_tex, o, d, step, sky, env)
+    if env is not None:  # and as many directions drawn from the map (multiple importance sampling)
+        L += envmap_nee(medium, env, o, jit_rng(m * k, seed + 1, dr.arange(mi.UInt64, m * k)), mi.Bool(True))
     dr.eval(L)  # one kernel: read channel by channel, each would run the march again
     out = from_jit(L, np.float64)
     return out.reshape(m, k, 3).mean(axis=1).astype(np.float32)
@@ -551,8 +559,10 @@ def _march_ms(medium, G_tex, o: mi.Point3f, d: mi.Vector3f, step: float, sky: fl
     L += dr.select(t < t_end, Tr, 0.0) * G0
     if dr.hint(sky > 0.0, mode="scalar"):  # the sky's component only
         L += dr.select(t < t_end, 0.0, Tr) * sky
-    if dr.hint(env is not None, mode="scalar"):  # an environment map's
-        L += dr.select(t < t_end, 0.0, Tr) * envmap_seen(env, d)
+    if dr.hint(env is not None, mode="scalar"):  # an environment map's, against its own samples
+        seen = t >= t_end
+        weight = power_heuristic(ISOTROPIC_PDF, envmap_pdf(env, o, d, seen))
+        L += dr.select(seen, Tr, 0.0) * envmap_seen(env, d) * weight
     return L
 
 

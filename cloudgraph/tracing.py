@@ -227,6 +227,38 @@ def envmap_seen(emitter, d: mi.Vector3f) -> mi.Color3f:
     return mi.Color3f(emitter.eval(si))
 
 
+#: The isotropic phase's (and a uniform direction's) density per steradian.
+ISOTROPIC_PDF = 1.0 / (4.0 * np.pi)
+
+
+def power_heuristic(pdf, other):
+    """The power heuristic's weight of a sample drawn with ``pdf`` against one other strategy."""
+    a, b = pdf * pdf, other * other
+    return dr.select(a + b > 0, a / (a + b), 0.0)
+
+
+def envmap_pdf(emitter, p: mi.Point3f, d: mi.Vector3f, active: mi.Bool) -> mi.Float:
+    """The density (per steradian) with which an environment map's own sampling draws d at p."""
+    it = dr.zeros(mi.Interaction3f, dr.width(d))
+    it.p = p
+    ds = dr.zeros(mi.DirectionSample3f, dr.width(d))
+    ds.d = d
+    return emitter.pdf_direction(it, ds, active)
+
+
+def envmap_nee(medium, emitter, p: mi.Point3f, rng: mi.PCG32, active: mi.Bool) -> mi.Color3f:
+    """An environment map's single scattering at p (isotropic phase) by one direction drawn
+    from the map (Mitsuba's importance sampling) with ratio tracking toward it, weighted by the
+    power heuristic against an isotropic direction that also sees the map where it leaves the
+    medium (weighted by :func:`envmap_pdf`'s heuristic): a small bright spot, a sun in the map,
+    is found by the map's samples, a wide glow by the isotropic ones."""
+    it = dr.zeros(mi.Interaction3f, dr.width(p))
+    it.p = p
+    ds, weight = emitter.sample_direction(it, mi.Point2f(rng.next_float32(), rng.next_float32()), active)
+    Tr = ratio_tracking(medium, p, ds.d, rng, active & (ds.pdf > 0))
+    return mi.Color3f(weight) * Tr * (power_heuristic(ds.pdf, ISOTROPIC_PDF) * ISOTROPIC_PDF)
+
+
 def uniform_sphere(rng: mi.PCG32) -> mi.Vector3f:
     """Isotropic directions."""
     return mi.warp.square_to_uniform_sphere(mi.Point2f(rng.next_float32(), rng.next_float32()))

@@ -61,10 +61,14 @@ from ..phase import hg_phase, phase_bounces, phase_walk, shape_basis
 from ..spatial import NodeGrid
 from ..tracing import (
     BLOCK,
+    ISOTROPIC_PDF,
     DensityField,
+    envmap_nee,
+    envmap_pdf,
     envmap_seen,
     exponential_segment,
     linear_texture,
+    power_heuristic,
     ratio_tracking,
     sample_collision,
     single_segment,
@@ -211,14 +215,19 @@ class GraphIntegrator(mi.SamplingIntegrator):
         self.sky = dr.opaque(mi.Color3f, tuple(lights.sky_radiance))
         self.env_scale = [dr.opaque(mi.Color3f, tuple(e)) for e in lights.envmap_scale]
 
-    def _background(self, seen: mi.Bool, d: mi.Vector3f) -> mi.Color3f:
+    def _background(self, seen: mi.Bool, d: mi.Vector3f, p=None) -> mi.Color3f:
         """What a ray of direction d sees where ``seen`` (rays that leave the medium): the sky's
-        radiance and the environment maps'; 0 elsewhere, and without them."""
+        radiance and the environment maps'; 0 elsewhere, and without them. ``p``: the ray is an
+        isotropic flight from there, and each map's radiance takes its multiple importance
+        sampling weight against the map's own sampling (tracing.envmap_nee)."""
         L = mi.Color3f(0.0)
         if self.has_sky:  # (Python-level switches: no sky or map, no term in the kernel)
             L += self.sky
         for env, scale in zip(self.envs, self.env_scale, strict=True):
-            L += scale * envmap_seen(env, d)
+            seen_env = scale * envmap_seen(env, d)
+            if p is not None:
+                seen_env *= power_heuristic(ISOTROPIC_PDF, envmap_pdf(env, p, d, seen))
+            L += seen_env
         if not self.has_sky and not self.envs:
             return L
         return dr.select(seen, L, 0.0)
@@ -240,17 +249,20 @@ class GraphIntegrator(mi.SamplingIntegrator):
             return self._gather_phase(o, d, rng, active)
         # Several lights: one ratio-tracking estimate per directional light; a sky is seen where
         # the flight to p'' leaves the medium (its single scattering, weight p / pdf = 1) and
-        # behind it where the camera's ray does
+        # behind it where the camera's ray does; an environment map both there and by a
+        # direction drawn from the map, the two weighted by the power heuristic
         t, collided = sample_collision(self.medium, o, d, rng, active)
         p = mi.Point3f(o + t * d)
         L_ss = mi.Color3f(0.0)
         for to_light, E in zip(self.to_light, self.irradiance, strict=True):  # the lights, unrolled
             Tr = ratio_tracking(self.medium, p, mi.Vector3f(*to_light), rng, collided)
             L_ss += Tr * E / (4.0 * dr.pi)
+        for env, scale in zip(self.envs, self.env_scale, strict=True):  # maps: their own samples too
+            L_ss += scale * envmap_nee(self.medium, env, p, rng, collided)
         w = uniform_sphere(rng)
         t2, collided2 = sample_collision(self.medium, p, w, rng, collided)
         L_ms = mi.Color3f(*self.albedo) * self.grid.lookup(p + t2 * w, self.eps2, collided2)
-        L_in = L_ss + dr.select(collided2, L_ms, self._background(collided, w))
+        L_in = L_ss + dr.select(collided2, L_ms, self._background(collided, w, p))
         return dr.select(collided, mi.Color3f(*self.albedo) * L_in, self._background(active, d))
 
     def _gather_phase(self, o, d, rng, active):
