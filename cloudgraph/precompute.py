@@ -142,11 +142,9 @@ def precompute(
     keys = cache_keys(scene, volume, params)
     gkey, rkey = keys["graph_key"], keys["radiance_key"]
     lights = Lights.of(scene)
-    if lights.basis and lights.count > 1:
-        found = read_radiance(store.radiance_path(rkey))
-        found_field = store.load_field(rkey) if found is not None else None
-        if found_field is None:
-            return _composed(scene, volume, quality, store, progress, chunks, keys, build_overrides)
+    made = store.radiance_path(rkey).is_file() and store.field_path(rkey).is_file()
+    if lights.basis and lights.count > 1 and not made:
+        return _composed(scene, volume, quality, store, progress, chunks, keys, build_overrides)
     # The graph's medium: the scene's, or for an anisotropic phase its similarity-scaled
     # isotropic medium (sigma_t' = sigma_t (1 - a g), albedo' = a (1 - g) / (1 - a g)). The
     # field is baked in the real medium, by a builder of its own; its chunks then run here, as

@@ -156,6 +156,19 @@ def _suns(header: dict) -> list[dict]:
     return [sun]
 
 
+def light_depth_from_above(field: dict) -> None:
+    """Replaces ``field``'s tau_light by the optical depth its density really gives for its
+    light from above (direction -y): the integral of sigma_t from each texel centre up to the
+    box's top face, continuous across the medium's edge (make_field's own tau_light jumps
+    there, which moving frames, interpolating exp(-tau), cannot follow)."""
+    h, v = field["header"], field["values"]
+    assert h["light"]["direction"] == [0.0, -1.0, 0.0]
+    sigma = v["sigma_t"]  # (nz, ny, nx), y up; sigma per world unit
+    dy = float(np.asarray(h["unit_to_world"])[1, 1]) / sigma.shape[1]
+    above = np.cumsum(sigma[:, ::-1, :], axis=1)[:, ::-1, :] * dy - 0.5 * sigma * dy
+    _put(field, "tau_light", above, float(above.max()) / 1000.0)
+
+
 def _put(field: dict, name: str, values: np.ndarray, scale) -> None:
     """Stores an array of decoded ``values`` as the page sees it: float16 of values / scale."""
     scale = np.asarray(scale, np.float32)

@@ -148,7 +148,7 @@ def test_field_beyond_device_limits_is_refused_in_words(page):
         const { GLView } = await import('/js/glview.js');
         const view = new GLView(document.createElement('canvas'));
         const grid = (n) => ({ shape: [4, 4, n] });
-        const field = (n) => ({ suns: [{ tau: 'tau_light', shape: null }], components: [],
+        const field = (n) => ({ header: {}, suns: [{ tau: 'tau_light', shape: null }], components: [],
           arrays: { sigma_t: grid(n), tau_light: grid(n), radiance_ms: { shape: [2, 2, 2, 3] },
                     majorant: { shape: [1, 1, 1] } } });
         return { max: view.maxSize, ok: view.tooLarge(field(view.maxSize)),

@@ -7,7 +7,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from .fieldmaker import add_view_terms, make_field, reference_render, rel_mae, view_basis
+from .fieldmaker import (
+    add_view_terms,
+    light_depth_from_above,
+    make_field,
+    reference_render,
+    rel_mae,
+    view_basis,
+)
 from .test_glview import browser, camera, page, render  # noqa: F401 (fixtures)
 
 
@@ -23,6 +30,7 @@ def test_the_page_weights_single_scattering_by_the_phase_per_pixel(page, phase, 
     field, iso = make_field(), make_field()
     for f in (field, iso):  # single scattering well above the synthetic L_ms
         f["header"]["light"]["irradiance"] = [4.0, 3.6, 3.2]
+        light_depth_from_above(f)  # (moving frames interpolate exp(-tau): a continuous tau)
     field["header"]["phase"] = phase
     lo, hi = (np.asarray(v) for v in field["header"]["world_bbox"])
     c, r = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
@@ -30,8 +38,8 @@ def test_the_page_weights_single_scattering_by_the_phase_per_pixel(page, phase, 
         camera(c + r * np.array([0.1, -1.1, 0.2]), c, fov=50),  # from below, into the light (down)
         camera(c + r * np.array([1.2, 0.1, 0.3]), c),  # from the side
     ]
-    # the moving camera's packed texture holds isotropic single scattering: with a phase, its
-    # frames take the exact march
+    # moving frames: the packed texture holds the sun's transmittance apart, weighted by E p
+    # per ray
     images = render(page, field, cams, fast=fast)
     for cam, img, plain in zip(cams, images, render(page, iso, cams), strict=True):
         ref = reference_render(field, cam, lobes=lobes)

@@ -92,12 +92,19 @@ export function mixedBackground(field, intensities) {
   return { ...weightedSum(terms), width, height };
 }
 
+/** Suns whose transmittance the moving camera's texture of an anisotropic field holds apart
+ * (one RGBA texture: packedField's ``sunT``). */
+export const MOVING_PHASE_SUNS = 4;
+
 /**
  * The moving camera's texture: per density voxel (sigma_t / scale, L_in r, g, b) with
  * L_in = sum over suns E exp(-tau_light) / 4pi + L_ms (resampled to the density grid).
- * ``mix`` (glview.js): { direct: per sun E / 4pi, ms: mixedRadiance's }. Float32 RGBA.
+ * ``mix`` (glview.js): { direct: per sun E / 4pi, ms: mixedRadiance's }. With ``phase`` (an
+ * anisotropic field, at most MOVING_PHASE_SUNS suns) L_in is L_ms alone, whose view terms it
+ * leaves out, and ``sunT`` holds each sun's exp(-tau_light) per voxel (RGBA): the shader weights
+ * them by E p per ray. Returns { packed, sunT (or null) }, float32 RGBA.
  */
-export function packedField(field, mix) {
+export function packedField(field, mix, { phase = false } = {}) {
   const { sigma_t, radiance_ms } = field.arrays;
   const [nz, ny, nx] = sigma_t.shape;
   const [mz, my, mx] = radiance_ms.shape;
@@ -108,6 +115,7 @@ export function packedField(field, mix) {
   const Y = axisWeights(ny, my);
   const Z = axisWeights(nz, mz);
   const out = new Float32Array(4 * nx * ny * nz);
+  const sunT = phase ? new Float32Array(4 * nx * ny * nz) : null;
   const c = [0, 0, 0];
   let v = 0;
   for (let k = 0; k < nz; k++) {
@@ -135,9 +143,13 @@ export function packedField(field, mix) {
         let eb = sb * c[2];
         for (let s = 0; s < taus.length; s++) {
           const direct = Math.exp(-Number(taus[s].scale) * HALF[taus[s].data[v]]);
-          er += mix.direct[s][0] * direct;
-          eg += mix.direct[s][1] * direct;
-          eb += mix.direct[s][2] * direct;
+          if (sunT) {
+            sunT[4 * v + s] = direct;
+          } else {
+            er += mix.direct[s][0] * direct;
+            eg += mix.direct[s][1] * direct;
+            eb += mix.direct[s][2] * direct;
+          }
         }
         out[4 * v] = HALF[sigma_t.data[v]];
         out[4 * v + 1] = er;
@@ -146,5 +158,5 @@ export function packedField(field, mix) {
       }
     }
   }
-  return out;
+  return { packed: out, sunT };
 }

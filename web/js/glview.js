@@ -2,7 +2,7 @@
 // read-back of an image at a given size for comparisons. Knows nothing of the DOM around it.
 
 import { fragmentShader, tauTextures, textureUnits, VERTEX } from "./shaders.js";
-import { channelGroup, interleaved, mixedBackground, mixedRadiance, packedField } from "./fieldtex.js";
+import { channelGroup, interleaved, mixedBackground, mixedRadiance, MOVING_PHASE_SUNS, packedField } from "./fieldtex.js";
 import { SHAPE_TERMS } from "./field.js";
 import { linearToSrgb8, srgbToLinear } from "./imagemath.js";
 import { cross, normalize, sub } from "./camera.js";
@@ -136,13 +136,14 @@ export class GLView {
   /**
    * GPU bytes of a field's textures: RG16F density + tau, RGBA16F textures of the other suns'
    * tau, RGBA16F-padded radiance, R16F majorant, the RGBA16F (sigma_t, L_in) texture of the
-   * moving camera with its mipmaps, four RGBA16F textures of view terms a shaped sun, and an
+   * moving camera with its mipmaps (and of an anisotropic field its suns' transmittance), four RGBA16F textures of view terms a shaped sun, and an
    * RGBA16F-padded lat-long background of the environment maps.
    */
   static textureBytes(field) {
     const count = (a) => a.shape[0] * a.shape[1] * a.shape[2];
     const { sigma_t, radiance_ms, majorant } = field.arrays;
-    const density = 4 + (8 * 8) / 7 + 8 * tauTextures(field.suns.length);
+    const moving = ((movingPhase(field) ? 2 : 1) * 8 * 8) / 7; // the moving textures, with mips
+    const density = 4 + moving + 8 * tauTextures(field.suns.length);
     const shape = shapedSuns(field).reduce((n, k) => n + 8 * Math.ceil(SHAPE_TERMS / 4) * count(field.arrays[field.suns[k].shape.array]), 0);
     const env = field.components.find((c) => c.background);
     const background = env ? 8 * field.arrays[env.background].shape[0] * field.arrays[env.background].shape[1] : 0;
@@ -160,10 +161,10 @@ export class GLView {
     const m = mixOf(this.unitField, mix);
     Object.assign(this.field, m.uniforms);
     const rad = this.makeTexture(this.unitField.arrays.radiance_ms, this.gl.RGB16F, this.gl.RGB, m.ms.data, this.gl.LINEAR, this.gl.FLOAT);
-    const packed = this.makePacked(this.unitField.arrays.sigma_t, packedField(this.unitField, m));
+    const moving = this.makeMoving(this.unitField, m);
     const env = m.env && this.makeBackground(m.env);
-    for (const name of ["rad", "packed", "env"]) if (this.textures[name]) this.gl.deleteTexture(this.textures[name]);
-    Object.assign(this.textures, { rad, packed, env });
+    for (const name of ["rad", "packed", "sunT", "env"]) if (this.textures[name]) this.gl.deleteTexture(this.textures[name]);
+    Object.assign(this.textures, { rad, ...moving, env });
   }
 
   /** The environment maps' lat-long background (mixedBackground's): RGB16F, wrapping around
@@ -195,6 +196,14 @@ export class GLView {
       gl.texParameteri(gl.TEXTURE_3D, w, gl.CLAMP_TO_EDGE);
     }
     return t;
+  }
+
+  /** The moving camera's textures of a field in a light (packedField's): { packed, sunT }. */
+  makeMoving(field, m) {
+    const phase = movingPhase(field);
+    const data = packedField(field, m, { phase });
+    const sunT = phase ? this.makePacked(field.arrays.sigma_t, data.sunT) : null;
+    return { packed: this.makePacked(field.arrays.sigma_t, data.packed), sunT };
   }
 
   /** The moving camera's RGBA16F (sigma_t, L_in) texture, with mipmaps where the device can. */
@@ -235,14 +244,18 @@ export class GLView {
     const shaped = shapedSuns(field);
     const groups = Array.from({ length: Math.ceil(SHAPE_TERMS / 4) }, (_, g) => 4 * g);
     const layout = { suns: field.suns.length, shaped, env: !!m.env };
-    const programs = { exact: this.program({ packed: false, ...layout }), fast: this.program({ packed: true, ...layout, shaped: [] }) };
+    const phase = movingPhase(field);
+    const programs = {
+      exact: this.program({ packed: false, ...layout }),
+      fast: field.suns.length && phaseLobes(field.header.phase) && !phase ? null : this.program({ packed: true, ...layout, shaped: [], phase }),
+    };
     const textures = {
       densTau: make(sigma_t, gl.RG16F, gl.RG, interleaved([sigma_t.data, first.data]), gl.LINEAR),
       tauA: taus.length > 1 ? make(sigma_t, gl.RGBA16F, gl.RGBA, interleaved(taus.slice(1, 5).map((t) => t.data), 4), gl.LINEAR) : null,
       tauB: taus.length > 5 ? make(sigma_t, gl.RGBA16F, gl.RGBA, interleaved(taus.slice(5).map((t) => t.data), 4), gl.LINEAR) : null,
       rad: make(radiance_ms, gl.RGB16F, gl.RGB, m.ms.data, gl.LINEAR, gl.FLOAT),
       maj: make(majorant, gl.R16F, gl.RED, majorant.data, gl.NEAREST),
-      packed: this.makePacked(sigma_t, packedField(field, m)),
+      ...this.makeMoving(field, m),
       env: m.env ? this.makeBackground(m.env) : null,
     };
     for (const k of shaped) {
@@ -306,9 +319,10 @@ export class GLView {
     const gl = this.gl;
     const f = this.field;
     if (!f) return;
-    // The moving camera's texture holds isotropic single scattering (fieldtex.js): with a
-    // Henyey-Greenstein phase every frame takes the exact march, whose phase factor is per ray
-    fast = fast && !f.phase;
+    // The moving camera's texture of an anisotropic field holds each sun's transmittance apart
+    // (weighted by E p per ray) and L_ms without its view terms; beyond MOVING_PHASE_SUNS suns
+    // every frame takes the exact march
+    fast = fast && !!f.programs.fast;
     const { program, loc: L } = fast ? f.programs.fast : f.programs.exact;
     const { forward, right, up } = cameraBasis(cam);
     const tanX = Math.tan((cam.fov * Math.PI) / 360);
@@ -359,6 +373,7 @@ export class GLView {
       ["uRad", t.rad],
       ["uMaj", t.maj],
       ["uTauA", t.tauA],
+      ["uSunT", t.sunT],
       ["uTauB", t.tauB],
       ...(fast ? [] : f.shapes.flatMap(({ sun }) => [0, 1, 2, 3].map((g) => [`uShape${sun}_${g}`, t[`shape${sun}_${g}`]]))),
     ];
@@ -447,6 +462,12 @@ export function phaseLobes(phase) {
   if (phase.type === "hg") return phase.g === 0 ? null : [phase.g, 0, 1];
   if (phase.type === "hg2") return [phase.g[0], phase.g[1], phase.weight];
   throw new Error(`the field's header has an unknown phase ${JSON.stringify(phase.type)}`);
+}
+
+/** Whether the moving camera's texture of a field holds its suns' transmittance apart: an
+ * anisotropic phase's field of at most MOVING_PHASE_SUNS suns (fieldtex.js). */
+function movingPhase(field) {
+  return !!phaseLobes(field.header.phase) && field.suns.length > 0 && field.suns.length <= MOVING_PHASE_SUNS;
 }
 
 /** Whether a field has an environment map's background to draw. */

@@ -58,7 +58,7 @@ function tauTexel(k) {
  * suns: the field's directional lights (0 .. MAX_SUNS of field.js); shaped: the indices of
  * those whose view terms the field holds (an anisotropic phase; the exact march only).
  */
-export function fragmentShader({ packed = false, suns = 1, shaped = [], env = false } = {}) {
+export function fragmentShader({ packed = false, suns = 1, shaped = [], env = false, phase = false } = {}) {
   const ns = Math.max(1, suns); // GLSL arrays are never empty
   const range = (n) => Array.from({ length: n }, (_, k) => k);
   const shapedSuns = packed ? [] : shaped;
@@ -90,6 +90,7 @@ vec4 gB${k}[4];                  // its functions of direction at the ray's dire
 #define SUNS ${suns}
 #define NS ${ns}
 #define ENV ${env ? 1 : 0}
+#define SUN_T ${packed && phase ? 1 : 0}
 precision highp float;
 precision highp int;
 precision highp sampler3D;
@@ -98,6 +99,7 @@ uniform sampler3D uDensTau;   // R: sigma_t / sigmaScale, G: the first sun's tau
                               // linear); PACKED: R as above, GBA: L_in
 uniform sampler3D uTauA;      // RGBA: suns 1-4's tau_light (linear; several suns only)
 uniform sampler3D uTauB;      // RGBA: suns 5-8's
+uniform sampler3D uSunT;      // SUN_T: RGBA, suns 1-4's exp(-tau_light) (linear, mipmapped)
 uniform sampler3D uRad;       // RGB: L_ms, the lights' components mixed / uRadScale (linear)
 uniform sampler3D uMaj;       // R: majorant / uMajScale per block (nearest, texelFetch)
 uniform vec3 uSky;            // the sky's radiance seen behind the medium (0 without a sky)
@@ -194,6 +196,8 @@ float srgb(float x) {
   return x <= 0.0031308 ? 12.92 * x : 1.055 * pow(x, 1.0 / 2.4) - 0.055;
 }
 
+vec3 gDirect[NS];             // main's E p per sun, for sampleAt (SUN_T)
+
 // What a segment's end holds: sigma_t per world unit, tau_light per sun and L_ms (PACKED:
 // L_in in ms, tau unused).
 struct Sample {
@@ -208,6 +212,10 @@ Sample sampleAt(vec3 p) {
   vec4 v = textureLod(uDensTau, p, uLod);
   s.sigma = v.r * uSigmaScale;
   s.ms = v.gba;
+#if SUN_T
+  vec4 sunT = textureLod(uSunT, p, uLod);
+  for (int k = 0; k < SUNS; k++) s.ms += gDirect[k] * sunT[k];
+#endif
 #else
   vec2 st = texture(uDensTau, p).rg;
   s.sigma = st.r * uSigmaScale;
@@ -239,6 +247,7 @@ void main() {
   vec3 L = vec3(0.0);           // radiance accumulator
   vec3 direct[NS];              // E p per sun: single scattering's, constant along the ray
   for (int k = 0; k < SUNS; k++) direct[k] = uDirect[k] * phaseFactor(uToLight[k], d);
+  gDirect = direct;
 ${basisLines}
   float Tr = 1.0;               // transmittance from the eye
   if (tEnd > t) {
