@@ -122,8 +122,9 @@ def test_intensities_and_limits_in_words(page):  # noqa: F811
         const { GLView, lightsOf } = await import('/js/glview.js');
         const view = new GLView(document.createElement('canvas'));
         const grid = { shape: [4, 4, 4] };
-        const shaped = (n) => ({ header: {}, unit: true, suns: Array.from({ length: n }, (_, k) => ({ tau: `t${k}`,
-          shape: { array: 's' } })), components: [], arrays: { sigma_t: grid, tau_light: grid,
+        const shaped = (n) => ({ header: {}, unit: true,
+          suns: Array.from({ length: n }, (_, k) => ({ tau: `t${k}`, shape: { array: 's' } })),
+          components: [], arrays: { sigma_t: grid, tau_light: grid,
           radiance_ms: { shape: [2, 2, 2, 3] }, majorant: { shape: [1, 1, 1] },
           s: { shape: [2, 2, 2, 14] } } });
         const field = { unit: true, suns: [{}, {}], components: [{ type: 'directional' }, { type: 'sky' },
