@@ -336,7 +336,11 @@ def _composed(scene, volume, quality, store, progress, chunks, keys, build_overr
         "radiance_reused": False,
         "field_reused": False,
     }
-    store.save_radiance(rkey, radiance_file(pack_radiance(radiance, radiance_gather), rstats))
+    # The file keeps what its content is (the first component's file's stats: the graph's), not
+    # what this run found or made: the same key, the same bytes
+    first = read_radiance(store.radiance_path(parts[0].keys["radiance_key"]))[1]
+    kept = {**first, "light_components": len(parts)}
+    store.save_radiance(rkey, radiance_file(pack_radiance(radiance, radiance_gather), kept))
     field = combined([p.field for p in parts], rkey)
     field_data = field.encode()
     store.save_field(rkey, field_data)

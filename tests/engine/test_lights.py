@@ -230,6 +230,12 @@ def test_a_new_light_list_computes_its_new_lights_only(variant, tmp_path):
     np.testing.assert_array_equal(more.field.array("radiance_ms_2"), first.field.array("radiance_ms_1"))
     assert [c["type"] for c in more.field.meta["lights"]] == ["directional", "directional", "sky"]
     assert more.field.meta["lights"][1]["tau"] == "tau_light_1" and more.field.array("tau_light_1").max() > 1
+    # the same lights from nothing: the same files, whatever the store had
+    fresh = CacheStore(tmp_path / "fresh")
+    precompute(lit(volume, [SUN, SKY, SUN2], 1.0, size=24), volume, "draft", fresh)
+    for path in ("radiance_path", "field_path"):
+        key = more.keys["radiance_key"]
+        assert getattr(fresh, path)(key).read_bytes() == getattr(store, path)(key).read_bytes(), path
     swapped = precompute(lit(volume, [SKY, SUN2, SUN], 1.0, size=24), volume, "draft", store)
     assert swapped.keys["radiance_key"] != more.keys["radiance_key"]
     assert swapped.stats["components_reused"] == 3
