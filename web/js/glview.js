@@ -309,6 +309,29 @@ export class GLView {
       }),
       toLight,
     };
+    this.warmUp();
+  }
+
+  /** Draws one pixel with each of the field's programs, off screen: a driver that compiles a
+   * program on its first draw (SwiftShader takes seconds) does so now, while the field
+   * arrives, not on the first frame of a move. */
+  warmUp() {
+    const gl = this.gl;
+    const tex = gl.createTexture();
+    gl.bindTexture(gl.TEXTURE_2D, tex);
+    gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA8, 1, 1);
+    const fbo = gl.createFramebuffer();
+    gl.bindFramebuffer(gl.FRAMEBUFFER, fbo);
+    gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, tex, 0);
+    const cam = { eye: [0, 0, -1e3], target: [0, 0, 0], up: [0, 1, 0], fov: 40 };
+    try {
+      for (const fast of [false, true]) this.draw(cam, 1, 1, { fast, stepScale: fast ? 2 : 1 });
+      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4));
+    } finally {
+      gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+      gl.deleteFramebuffer(fbo);
+      gl.deleteTexture(tex);
+    }
   }
 
   /**
