@@ -131,6 +131,13 @@ export class Api {
     return { blob: await response.blob(), response };
   }
 
+  /** POSTs ``file`` as the multipart field "file" to ``path``. */
+  upload(path, file) {
+    const form = new FormData();
+    form.append("file", file, file.name);
+    return this.json(path, { method: "POST", form, what: `Uploading “${file.name}”` });
+  }
+
   // --- the routes the page uses ---
 
   listVolumes() {
@@ -138,9 +145,7 @@ export class Api {
   }
 
   uploadVolume(file) {
-    const form = new FormData();
-    form.append("file", file, file.name);
-    return this.json("/v1/volumes", { method: "POST", form, what: `Uploading “${file.name}”` });
+    return this.upload("/v1/volumes", file);
   }
 
   listEnvironments() {
@@ -148,9 +153,7 @@ export class Api {
   }
 
   uploadEnvironment(file) {
-    const form = new FormData();
-    form.append("file", file, file.name);
-    return this.json("/v1/environments", { method: "POST", form, what: `Uploading “${file.name}”` });
+    return this.upload("/v1/environments", file);
   }
 
   createCache(body, signal) {

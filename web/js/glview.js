@@ -247,7 +247,8 @@ export class GLView {
     const phase = movingPhase(field);
     const programs = {
       exact: this.program({ packed: false, ...layout }),
-      fast: field.suns.length && phaseLobes(field.header.phase) && !phase ? null : this.program({ packed: true, ...layout, shaped: [], phase }),
+      // an anisotropic field of more suns than the moving textures hold moves with the exact march
+      fast: phaseLobes(field.header.phase) && field.suns.length > MOVING_PHASE_SUNS ? null : this.program({ packed: true, ...layout, shaped: [], phase }),
     };
     const textures = {
       densTau: make(sigma_t, gl.RG16F, gl.RG, interleaved([sigma_t.data, first.data]), gl.LINEAR),
@@ -317,16 +318,25 @@ export class GLView {
    * arrives, not on the first frame of a move. */
   warmUp() {
     const gl = this.gl;
+    const cam = { eye: [0, 0, -1e3], target: [0, 0, 0], up: [0, 1, 0], fov: 40 };
+    this.offscreen(1, 1, gl.RGBA8, () => {
+      for (const fast of [false, true]) this.draw(cam, 1, 1, { fast, stepScale: fast ? 2 : 1 });
+      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4));
+    });
+  }
+
+  /** Runs ``fn`` with a width x height texture of ``format`` bound as the framebuffer, then
+   * frees both. */
+  offscreen(width, height, format, fn) {
+    const gl = this.gl;
     const tex = gl.createTexture();
     gl.bindTexture(gl.TEXTURE_2D, tex);
-    gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA8, 1, 1);
+    gl.texStorage2D(gl.TEXTURE_2D, 1, format, width, height);
     const fbo = gl.createFramebuffer();
     gl.bindFramebuffer(gl.FRAMEBUFFER, fbo);
     gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, tex, 0);
-    const cam = { eye: [0, 0, -1e3], target: [0, 0, 0], up: [0, 1, 0], fov: 40 };
     try {
-      for (const fast of [false, true]) this.draw(cam, 1, 1, { fast, stepScale: fast ? 2 : 1 });
-      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4));
+      fn();
     } finally {
       gl.bindFramebuffer(gl.FRAMEBUFFER, null);
       gl.deleteFramebuffer(fbo);
@@ -432,14 +442,8 @@ export class GLView {
     const { width, height } = cam;
     const n = Math.max(1, Math.round(Math.sqrt(samples)));
     const float = n > 1 && !!gl.getExtension("EXT_color_buffer_float");
-    const tex = gl.createTexture();
-    gl.bindTexture(gl.TEXTURE_2D, tex);
-    gl.texStorage2D(gl.TEXTURE_2D, 1, float ? gl.RGBA32F : gl.RGBA8, width, height);
-    const fbo = gl.createFramebuffer();
-    gl.bindFramebuffer(gl.FRAMEBUFFER, fbo);
-    gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, tex, 0);
     const sum = new Float32Array(width * height * 4);
-    try {
+    this.offscreen(width, height, float ? gl.RGBA32F : gl.RGBA8, () => {
       for (let k = 0; k < n * n; k++) {
         const offset = n > 1 ? [((k % n) + 0.5) / n, (Math.floor(k / n) + 0.5) / n] : [0.5, 0.5];
         this.draw(cam, width, height, { exposure, fast, seed: k, offset, linear: float });
@@ -453,11 +457,7 @@ export class GLView {
           for (let i = 0; i < px.length; i++) sum[i] += srgbToLinear(px[i]);
         }
       }
-    } finally {
-      gl.bindFramebuffer(gl.FRAMEBUFFER, null);
-      gl.deleteFramebuffer(fbo);
-      gl.deleteTexture(tex);
-    }
+    });
     // mean, clamped, to sRGB bytes, rows flipped to top-down
     const out = new ImageData(width, height);
     const inv = 1 / (n * n);
