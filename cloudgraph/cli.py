@@ -123,7 +123,7 @@ def _cmd_bench(args: argparse.Namespace) -> None:
 
     set_variant()
     if args.parts:
-        run_parts(scenes=args.scene, out_dir=args.out_dir, ref_spp=args.ref_spp)
+        run_parts(scenes=args.scene, out_dir=args.out_dir, ref_spp=args.ref_spp, parts=args.part)
     elif args.converged:
         run_converged(scenes=args.scene, out_dir=args.out_dir)
     else:
@@ -216,6 +216,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="the field's error by part (single scattering, all orders) beside gather and volpath",
     )
     b.add_argument("--ref-spp", type=int, default=4096, help="--parts: volpath reference samples")
+    b.add_argument(
+        "--part",
+        action="append",
+        choices=["single", "all"],
+        help="--parts: only this part (repeatable; default both)",
+    )
     b.add_argument(
         "--scene",
         action="append",

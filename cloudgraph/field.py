@@ -8,10 +8,10 @@ the density grid, split as the ``gather`` estimator splits it:
 
 - single scattering, exact to the grid: ``tau_light`` is the optical depth from each grid point
   to the light, by a deterministic midpoint march of the trilinear density in Dr.Jit (step
-  :data:`TAU_STEP` voxels). Optical depth, not transmittance, is stored: it is linear along the
-  light in a homogeneous medium, so trilinear interpolation keeps single scattering exact there,
-  where interpolating exp(-tau) would overestimate it. In optically thick voxels the grid values
-  are fitted to sub-voxel samples of the march (light_depth.py);
+  :data:`TAU_STEP` voxels), interpolated between grid points as exp(-TAU_POWER tau) (neither
+  tau, too dark at a shadow's edge between grid points, nor exp(-tau), too bright). In
+  optically thick voxels the grid values are fitted to sub-voxel samples of the march
+  (light_depth.py);
 - everything after the first scattering, from the graph, as ``gather`` computes it at its
   camera collision: one more flight from the grid point to p'', where albedo L'_search (the
   ``radiance_gather`` of Eq. 4.25) stands in for the rest; the flight is integrated over
@@ -44,7 +44,7 @@ from scipy.spatial import cKDTree
 from .chunks import placed
 from .field_file import RadianceField, component_names, pack_array, shape_name
 from .field_grid import FieldPoints, to_world, unit_points
-from .light_depth import fit_depth
+from .light_depth import TAU_MAX, TAU_POWER, fit_depth
 from .lights import Lights
 from .mitsuba_scene import envmap_emitter
 from .phase import (
@@ -63,6 +63,8 @@ from .tracing import (
     ISOTROPIC_PDF,
     block_majorant,
     cpu_threads,
+    depth_at,
+    depth_texture,
     envmap_nee,
     envmap_pdf,
     envmap_seen,
@@ -126,8 +128,6 @@ EDGE_VOXELS = 1.5
 BACKGROUND_WIDTH = 512
 #: Light march step, in field voxels (midpoint rule).
 TAU_STEP = 0.5
-#: Optical depth where the light march stops: exp(-16) ~ 1e-7 of the light is left.
-TAU_MAX = 16.0
 
 
 # ------------------------------------------------------------------ baking
@@ -298,6 +298,7 @@ def bake_field(
         "step": 0.5 * voxel,
         "max_dtau": MARCH_MAX_DTAU,
         "edge": EDGE_VOXELS * voxel,
+        "tau_power": TAU_POWER,
     }
     extra = {}
     if not lights.basis:  # a v1 light
@@ -601,10 +602,10 @@ def _walk_ms(medium, G_tex, points: np.ndarray, inputs: dict, seed: int) -> np.n
     def nothing(mask, w):  # a sun's component: nothing behind the medium
         return mi.Color3f(0.0)
 
-    tau = linear_texture(np.asarray(inputs["tau"]))
+    tau = depth_texture(inputs["tau"])
 
-    def sun_tr(i, p, mask):  # the bake's own light march, interpolated
-        return dr.exp(-tau.eval(medium.world_to_unit @ mi.Point3f(p), mask)[0])
+    def sun_tr(i, p, mask):  # the bake's own light march, interpolated as the camera's march does
+        return dr.exp(-depth_at(tau, medium.world_to_unit @ mi.Point3f(p), mask))
 
     suns = [(to_light, mi.Color3f(*(float(c) for c in E)))]
     bounces = int(inputs["bounces"][0])

@@ -10,6 +10,11 @@ Where a voxel's optical depth changes by THICK or more from a neighbour's, the m
 samples :data:`SUB_OFFSETS` points around each grid point, and the grid values are fitted to
 all samples by weighted least squares, weighted by what each sample scatters toward a camera
 (sigma_t T^2: a change of tau changes T by T). Elsewhere the grid keeps its exact values.
+
+Between grid points the textures interpolate q = T^TAU_POWER = exp(-TAU_POWER tau), not tau:
+where a cloud's shadow edge runs between grid points (the rim a back-lit camera sees: the light
+grazes a thin fringe) tau rises steeply across the light, and interpolating tau there reads
+the light far too low, interpolating T too high. The fit works in q too.
 """
 
 from __future__ import annotations
@@ -29,6 +34,13 @@ SUB_OFFSETS = np.array([[x, y, z] for z in (-0.25, 0.25) for y in (-0.25, 0.25) 
 #: interpolation's bias; measured on the dense bench cloud, more fit the samples closer and the
 #: light seen by a camera no better).
 ITERATIONS = 10
+#: Optical depth where the light march stops: exp(-16) ~ 1e-7 of the light is left.
+TAU_MAX = 16.0
+#: The power of the transmittance the grid's textures interpolate (module docstring). Camera-
+#: weighted single scattering against exact optical depth at 400 k points of the bench's thick
+#: clouds (dense, thick, holdout_thick, sphere; side / back), fitted: tau 0.981-0.989 side-lit
+#: and 0.946-0.977 back-lit; T^0.3 0.981-0.990 and 0.984-0.986; T^0.2 and T^0.5 a little worse.
+TAU_POWER = 0.3
 
 
 def sub_samples(sigma_t: np.ndarray, voxel: float) -> np.ndarray:
@@ -65,14 +77,17 @@ def _corners(coords: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray]:
 def fit_depth(
     tau: np.ndarray, sigma_t: np.ndarray, coords: np.ndarray, tau_samples: np.ndarray
 ) -> np.ndarray:
-    """The grid values (nz, ny, nx) whose trilinear interpolation best matches tau_light at the
-    grid points (``tau``, exact) and at the sub-voxel samples (``coords`` (M, 3) grid coordinates,
-    ``tau_samples`` (M,) exact), by weighted least squares (module docstring; LSQR from the exact
-    point values). Grid points no sample touches keep their value."""
+    """The grid values (nz, ny, nx) of optical depth whose interpolation (of q = T^TAU_POWER)
+    best matches tau_light at the grid points (``tau``, exact) and at the sub-voxel samples
+    (``coords`` (M, 3) grid coordinates, ``tau_samples`` (M,) exact), by weighted least squares
+    in q (module docstring; LSQR from the exact point values). Grid points no sample touches
+    keep their value."""
     if not len(coords):
         return tau
     shape = tau.shape[::-1]
     flat_tau, flat_sigma = tau.ravel().astype(np.float64), sigma_t.ravel().astype(np.float64)
+    flat_q = np.exp(-TAU_POWER * flat_tau)
+    q_samples = np.exp(-TAU_POWER * np.asarray(tau_samples, np.float64))
     index, weight = _corners(coords, shape)
     # The unknowns: the grid points the samples read (a mask: no sort of the samples' corners)
     touched = np.zeros(flat_tau.size, bool)
@@ -80,9 +95,10 @@ def fit_depth(
     free = np.flatnonzero(touched)
     column = np.cumsum(touched) - 1  # grid point -> its unknown
     sigma_samples = (flat_sigma[index] * weight).sum(axis=1)
-    # Each equation weighted by the square root of what its point scatters, sigma_t T^2
-    w_samples = np.sqrt(sigma_samples * np.exp(-2.0 * tau_samples))
-    w_points = np.sqrt(flat_sigma[free] * np.exp(-2.0 * flat_tau[free]))
+    # Each equation weighted as a change of tau is by what its point scatters, sigma_t T^2:
+    # dq = -TAU_POWER q dtau, so sqrt(sigma_t) T / q (a constant factor left out)
+    w_samples = np.sqrt(sigma_samples) * q_samples ** (1.0 / TAU_POWER - 1.0)
+    w_points = np.sqrt(flat_sigma[free]) * flat_q[free] ** (1.0 / TAU_POWER - 1.0)
     m, k = len(coords), len(free)
     # sample rows (8 corners each), then the grid points' own rows: CSR made in order, unsorted
     A = sp.csr_matrix(
@@ -93,9 +109,9 @@ def fit_depth(
         ),
         shape=(m + k, k),
     )
-    b = np.concatenate([w_samples * tau_samples, w_points * flat_tau[free]])
-    x0 = flat_tau[free]
+    b = np.concatenate([w_samples * q_samples, w_points * flat_q[free]])
+    x0 = flat_q[free]
     dx = spla.lsqr(A, b - A @ x0, atol=1e-6, btol=1e-6, iter_lim=ITERATIONS)[0]
-    g = flat_tau.copy()
-    g[free] = np.maximum(x0 + dx, 0.0)
-    return g.reshape(tau.shape).astype(np.float32)
+    q = flat_q.copy()
+    q[free] = np.clip(x0 + dx, np.exp(-TAU_POWER * TAU_MAX), 1.0)
+    return (-np.log(q) / TAU_POWER).reshape(tau.shape).astype(np.float32)

@@ -63,6 +63,8 @@ from ..tracing import (
     BLOCK,
     ISOTROPIC_PDF,
     DensityField,
+    depth_at,
+    depth_texture,
     envmap_nee,
     envmap_pdf,
     envmap_seen,
@@ -89,8 +91,9 @@ class FieldTextures:
 
     Attributes:
         tau: optical depth to each directional light, 1 channel each (a list, in the lights'
-            order); ms: radiance after the first scattering, 3 channels (the light components
-            mixed: :meth:`mixed_ms`); shape: per directional light, how its L_ms depends on
+            order), as q = exp(-tau_power tau) (light_depth.py; tau itself where 0); ms:
+            radiance after the first scattering, 3 channels (the light components mixed:
+            :meth:`mixed_ms`); shape: per directional light, how its L_ms depends on
             the view (an anisotropic phase; None without: phase.shape_basis), frame: the basis's
             frame (3, 3); all trilinear, clamped, over the unit cube.
         step: march step, world units; max_dtau: a step's optical depth at most (at its block's
@@ -100,6 +103,7 @@ class FieldTextures:
     """
 
     tau: object
+    tau_power: float
     ms: object
     shape: tuple
     frame: tuple
@@ -119,6 +123,7 @@ class FieldTextures:
     @classmethod
     def from_field(cls, field, lights) -> FieldTextures:
         step, max_dtau = float(field.meta["step"]), float(field.meta["max_dtau"])
+        power = float(field.meta.get("tau_power", 0.0))  # (0: a file of before it, tau interpolated)
         suns = [c for c in field.meta["lights"] if "tau" in c] if "lights" in field.meta else None
         taus = [field.array(c["tau"]) for c in suns] if suns is not None else [field.tau_light]
         shapes = [c.get("shape") for c in suns] if suns is not None else [field.meta.get("ms_shape")]
@@ -128,7 +133,8 @@ class FieldTextures:
         # the longest march: every segment at most max_dtau of the medium's majorant
         dense = float(field.majorant.max(initial=0.0)) * diag / max_dtau
         return cls(
-            tau=tuple(linear_texture(t) for t in taus),
+            tau=tuple(depth_texture(t, power) for t in taus),
+            tau_power=power,
             ms=linear_texture(cls.mixed_ms(field, lights)),
             shape=tuple(arrays),
             frame=tuple(np.asarray(sh["frame"], float) if sh else None for sh in shapes),
@@ -358,7 +364,7 @@ class GraphIntegrator(mi.SamplingIntegrator):
         for j in range(FIELD_EDGE_SAMPLES):  # a fixed quadrature, unrolled into the kernel
             q = pc + ((j + 0.5) / FIELD_EDGE_SAMPLES) * t_exit * lu
             tau += self.medium.texture.eval(q, active & edge)[0]
-        grid = self.field.tau[k].eval(pu, active & ~edge)[0]
+        grid = depth_at(self.field.tau[k], pu, active & ~edge, self.field.tau_power)
         return dr.select(edge, tau * self.medium.scale * t_exit / FIELD_EDGE_SAMPLES, grid)
 
     @dr.syntax

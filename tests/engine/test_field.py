@@ -138,6 +138,26 @@ def test_field_renders_what_gather_converges_to(which, request):
     assert abs(field.mean() / ref.mean() - 1) < 0.05
 
 
+def test_the_rim_of_a_back_lit_dense_cloud_reads_the_light_as_gather_does(variant, tmp_path):
+    # Back-lit, a camera sees single scattering only where the light grazes the cloud's thin
+    # fringe: the shadow's edge runs between grid points and tau_light rises steeply across the
+    # light there. Interpolating tau read the light at the rim low (field against gather in the
+    # mean: 0.948 on the bench's dense cloud); the grid interpolates exp(-TAU_POWER tau) instead.
+    from cloudgraph.procedural import noise_volume
+
+    volume = noise_volume(32, seed=11)
+    scene = medium_scene(volume, 4.0, albedo=1.0, eye_dir=LIGHT, size=32)  # optical depth 4 a voxel
+    scene = scene.model_copy(update={"render": scene.render.model_copy(update={"max_depth": 1})})
+    cache = precompute(scene, volume, "draft", CacheStore(tmp_path))
+    r = renderer(cache, volume, scene)
+    field = r.render(scene.camera, spp=16, seed=1, estimator="field").astype(np.float64)
+    gather = r.render(scene.camera, spp=1024, seed=1, estimator="gather").astype(np.float64)
+    # measured (32^2, draft): field / gather 0.967 in the mean, binned relMAE 4.7 % (interpolating
+    # tau: 0.936, 7.4 %; gather's own binned noise 3.0 %)
+    assert abs(field.mean() / gather.mean() - 1) < 0.045
+    assert rel_mae(field, gather) < 0.06
+
+
 def test_field_renders_are_deterministic_and_converged_at_one_sample(sphere):
     volume, scene, cache = sphere["volume"], sphere["scene"], sphere["cache"]
     r = renderer(cache, volume, scene)

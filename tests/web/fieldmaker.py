@@ -14,6 +14,8 @@ import math
 import numpy as np
 from scipy.ndimage import map_coordinates
 
+from cloudgraph.light_depth import TAU_POWER
+
 from ..helpers import box_interval, latlong_lookup, pixel_rays
 
 
@@ -72,6 +74,7 @@ def make_field(shape=(24, 20, 28), unit_to_world=None, block=4, seed=1, ms_coars
         "step": float(voxel / 2),
         "max_dtau": 0.5,
         "edge": float(1.5 * voxel),
+        "tau_power": TAU_POWER,
         "arrays": {
             "sigma_t": {"dtype": "float16", "shape": list(shape), "scale": sigma_scale},
             "tau_light": {"dtype": "float16", "shape": list(shape), "scale": 2.5},
@@ -137,7 +140,7 @@ def add_view_terms(field: dict, seed: int = 3, sun: int = 0) -> None:
     ex /= np.linalg.norm(ex)
     frame = np.stack([ex, np.cross(ez, ex), ez])
     name = "ms_shape" if sun == 0 else f"ms_shape_{sun}"
-    _put(field, name, terms, np.abs(terms).reshape(-1, 14).max(axis=0) / 1000.0)
+    put_array(field, name, terms, np.abs(terms).reshape(-1, 14).max(axis=0) / 1000.0)
     entry = {"array": name, "frame": frame.tolist()}
     if "lights" in field["header"]:
         suns[sun]["shape"] = entry
@@ -166,10 +169,10 @@ def light_depth_from_above(field: dict) -> None:
     sigma = v["sigma_t"]  # (nz, ny, nx), y up; sigma per world unit
     dy = float(np.asarray(h["unit_to_world"])[1, 1]) / sigma.shape[1]
     above = np.cumsum(sigma[:, ::-1, :], axis=1)[:, ::-1, :] * dy - 0.5 * sigma * dy
-    _put(field, "tau_light", above, float(above.max()) / 1000.0)
+    put_array(field, "tau_light", above, float(above.max()) / 1000.0)
 
 
-def _put(field: dict, name: str, values: np.ndarray, scale) -> None:
+def put_array(field: dict, name: str, values: np.ndarray, scale) -> None:
     """Stores an array of decoded ``values`` as the page sees it: float16 of values / scale."""
     scale = np.asarray(scale, np.float32)
     field["raw"][name] = (values / scale).astype(np.float16)
@@ -206,24 +209,24 @@ def add_lights(field: dict, directions, sky: bool = False, seed: int = 5, envmap
             dz = np.asarray(direction, float)
             depth = 0.5 + (x - 0.5) * dz[0] + (y - 0.5) * dz[1] + (z - 0.5) * dz[2]
             tau = (2.0 + k) * np.clip(depth, 0, None) * (v["sigma_t"] > 0) + 0.1 * (1 + k) * x
-            _put(field, entry["tau"], tau, float(tau.max()) / 1000.0)
+            put_array(field, entry["tau"], tau, float(tau.max()) / 1000.0)
             a, b = rng.uniform(0.02, 0.06, 3), rng.uniform(-0.03, 0.03, 3)
             ms = np.stack([a[c] + b[c] * (mxx, myy, mzz)[c] for c in range(3)], axis=-1)
-            _put(field, entry["ms"], ms, ms.reshape(-1, 3).max(axis=0) / 1000.0)
+            put_array(field, entry["ms"], ms, ms.reshape(-1, 3).max(axis=0) / 1000.0)
         lights.append(entry)
     if sky:
         name = "radiance_ms_sky"
         ms = np.stack([0.03 + 0.02 * myy, 0.035 + 0.02 * myy, 0.05 + 0.01 * mxx], axis=-1)
-        _put(field, name, ms, ms.reshape(-1, 3).max(axis=0) / 1000.0)
+        put_array(field, name, ms, ms.reshape(-1, 3).max(axis=0) / 1000.0)
         lights.append({"type": "sky", "ms": name})
     if envmap:
         ms = np.stack([0.02 + 0.03 * mxx, 0.03 + 0.01 * mzz, 0.02 + 0.02 * myy], axis=-1)
-        _put(field, "radiance_ms_env", ms, ms.reshape(-1, 3).max(axis=0) / 1000.0)
+        put_array(field, "radiance_ms_env", ms, ms.reshape(-1, 3).max(axis=0) / 1000.0)
         v, u = np.meshgrid((np.arange(32) + 0.5) / 32, (np.arange(64) + 0.5) / 64, indexing="ij")
         bg = np.stack(
             [0.5 + 0.4 * np.sin(2 * np.pi * u), 0.3 + 0.5 * v, 0.6 - 0.3 * np.cos(2 * np.pi * u) * v], -1
         )
-        _put(field, "background_env", bg, bg.reshape(-1, 3).max(axis=0) / 1000.0)
+        put_array(field, "background_env", bg, bg.reshape(-1, 3).max(axis=0) / 1000.0)
         lights.append({"type": "envmap", "ms": "radiance_ms_env", "background": "background_env"})
     del h["light"]
     h["lights"] = lights
@@ -252,8 +255,8 @@ def _sample(grid: np.ndarray, unit: np.ndarray) -> np.ndarray:
 
 def _tau_light(header: dict, values: dict, p: np.ndarray, sun: dict) -> np.ndarray:
     """tau_light of directional light ``sun`` (_suns) at unit points p (N, 3) as the field's
-    header says: its grid's, or within ``edge`` of where the light enters the box the integral
-    of sigma_t to it (3 midpoints)."""
+    header says: its grid's (interpolated as exp(-tau_power tau)), or within ``edge`` of where
+    the light enters the box the integral of sigma_t to it (3 midpoints)."""
     m = np.asarray(header["unit_to_world"], float)
     to_light = -np.asarray(sun["direction"], float)
     lu = np.linalg.inv(m)[:3, :3] @ (to_light / np.linalg.norm(to_light))  # unit cube per world unit
@@ -262,7 +265,12 @@ def _tau_light(header: dict, values: dict, p: np.ndarray, sun: dict) -> np.ndarr
         te = np.where(np.abs(lu) < 1e-9, 1e30, np.maximum(-pc / lu, (1 - pc) / lu))
     t_exit = np.maximum(te.min(axis=1), 0.0)
     edge = t_exit <= header["edge"]
-    tau = _sample(values[sun["tau"]], p)
+    power = header.get("tau_power", 0.0)  # the grid interpolates exp(-power tau) (0: tau)
+    if power:
+        q = _sample(np.exp(-power * values[sun["tau"]]), p)
+        tau = -np.log(np.maximum(q, np.exp(-16.0 * power))) / power
+    else:
+        tau = _sample(values[sun["tau"]], p)
     if edge.any():
         q, t = pc[edge], t_exit[edge]
         sums = sum(_sample(values["sigma_t"], q + ((k + 0.5) / 3) * t[:, None] * lu) for k in range(3))

@@ -4,13 +4,16 @@ numpy march (tests/web/fieldmaker.py). No service: the modules are served from w
 from __future__ import annotations
 
 import base64
+import copy
 
 import numpy as np
 import pytest
 
+from cloudgraph.light_depth import TAU_POWER
+
 from ..helpers import rotated_affine
 from .browser import ARGS, chromium_path, static_page
-from .fieldmaker import encode, make_field, reference_render, rel_mae
+from .fieldmaker import encode, make_field, put_array, reference_render, rel_mae
 
 sync_api = pytest.importorskip("playwright.sync_api")
 
@@ -128,6 +131,28 @@ def test_march_matches_numpy_reference(page, affine):
         # the per-pixel jitter leaves a little unbiased noise on the rough synthetic medium
         assert err < 0.025, f"relMAE {err:.4f} for camera {cam}"
         assert img.mean() == pytest.approx(ref.mean(), rel=0.01)
+
+
+@pytest.mark.parametrize("power", [TAU_POWER, None], ids=["tau_power", "no tau_power"])
+def test_tau_light_is_interpolated_as_the_header_says(page, power):
+    """Between grid points the page reads tau_light as the server's field does: interpolating
+    exp(-tau_power tau), or tau itself where the header has no tau_power (a field of before
+    it). A tau_light that steps between 0 and 6 from texel to texel tells the two apart."""
+    field = make_field()
+    tau = field["values"]["tau_light"]
+    x = np.arange(tau.shape[2])
+    put_array(field, "tau_light", np.broadcast_to(6.0 * (x % 2), tau.shape).astype(np.float32), 0.01)
+    if power is None:
+        del field["header"]["tau_power"]
+    other = copy.deepcopy(field)
+    other["header"]["tau_power"] = 0.0 if power else TAU_POWER
+    lo, hi = (np.asarray(v) for v in field["header"]["world_bbox"])
+    c, r = (lo + hi) / 2, np.linalg.norm(hi - lo)
+    cam = camera(c + r * np.array([0.3, 0.4, 1.2]), c)
+    (img,) = render(page, field, [cam], exposure=1.0)
+    ref = reference_render(field, cam, exposure=1.0)
+    assert rel_mae(img, ref) < 0.025
+    assert rel_mae(reference_render(other, cam, exposure=1.0), ref) > 0.1  # the other reading
 
 
 def test_moving_camera_texture_is_close(page):

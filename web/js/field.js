@@ -37,8 +37,8 @@ function vec(v, n, what) {
  * Returns { header, unitToWorld (16 numbers, row-major), worldToUnit (16, row-major),
  * worldBbox, light: { direction, irradiance }, albedo, step (world units), maxDtau (a
  * segment's optical depth at most), edge (world units: where the light enters the box within
- * this, tau_light is integrated from sigma_t),
- * arrays: { name: { data: Uint16Array of float16 bits, shape, scale } }, bytes }.
+ * this, tau_light is integrated from sigma_t), tauPower (the tau arrays are interpolated as
+ * exp(-tauPower tau); 0: as tau), arrays: { name: { data: Uint16Array of float16 bits, shape, scale } }, bytes }.
  * Throws FieldError naming what is wrong.
  */
 export function decodeField(buffer) {
@@ -100,6 +100,8 @@ export function decodeField(buffer) {
   const maxDtau = Number(header.max_dtau);
   const edge = Number(header.edge);
   if (!(maxDtau > 0) || !(edge >= 0)) throw new FieldError("the field's header has no valid max_dtau or edge");
+  const tauPower = Number(header.tau_power ?? 0); // (absent: a field of before it, tau interpolated)
+  if (!(tauPower >= 0)) throw new FieldError("the field's header has no valid tau_power");
   const backgrounds = lights.components.filter((c) => c.background).map((c) => arrays[c.background].shape);
   for (const c of lights.components) {
     if (arrays[c.ms].shape.join() !== arrays.radiance_ms.shape.join()) {
@@ -136,6 +138,7 @@ export function decodeField(buffer) {
     step,
     maxDtau,
     edge,
+    tauPower,
     arrays,
     bytes: buffer.byteLength,
   };

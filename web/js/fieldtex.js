@@ -4,11 +4,11 @@
 
 import { halfToFloat } from "./field.js";
 
-/** Float16 arrays of one grid as one array of ``channels`` per texel (the arrays in turn, zero
- * past the last). */
+/** Arrays of one grid (float16 bits or float32, all of one type) as one array of ``channels``
+ * per texel (the arrays in turn, zero past the last). */
 export function interleaved(arrays, channels = arrays.length) {
   const n = arrays[0].length;
-  const out = new Uint16Array(channels * n);
+  const out = new arrays[0].constructor(channels * n);
   arrays.forEach((a, c) => {
     for (let i = 0; i < n; i++) out[channels * i + c] = a[i];
   });
@@ -29,6 +29,24 @@ export function channelGroup(data, channels, from) {
 
 const HALF = new Float32Array(65536);
 for (let h = 0; h < 65536; h++) HALF[h] = halfToFloat(h);
+
+/** Float16 bits as float32. */
+export function halfFloats(data) {
+  return Float32Array.from(data, (h) => HALF[h]);
+}
+
+/** A sun's optical-depth array as the texels the shader reads (shaders.js depthOf): q =
+ * exp(-power tau), interpolated between grid points as the server's field is (power 0, a
+ * field of before the header's tau_power: tau itself). */
+export function depthTexels(array, power) {
+  const scale = Number(array.scale);
+  const out = new Float32Array(array.data.length);
+  for (let i = 0; i < out.length; i++) {
+    const tau = scale * HALF[array.data[i]];
+    out[i] = power > 0 ? Math.exp(-power * tau) : tau;
+  }
+  return out;
+}
 
 /** Trilinear weights that resample an axis of m texel centres at n texel centres. */
 function axisWeights(n, m) {

@@ -2,7 +2,7 @@
 // read-back of an image at a given size for comparisons. Knows nothing of the DOM around it.
 
 import { fragmentShader, tauTextures, textureUnits, VERTEX } from "./shaders.js";
-import { channelGroup, interleaved, mixedBackground, mixedRadiance, MOVING_PHASE_SUNS, packedField } from "./fieldtex.js";
+import { channelGroup, depthTexels, halfFloats, interleaved, mixedBackground, mixedRadiance, MOVING_PHASE_SUNS, packedField } from "./fieldtex.js";
 import { SHAPE_TERMS } from "./field.js";
 import { linearToSrgb8, srgbToLinear } from "./imagemath.js";
 import { cross, normalize, sub } from "./camera.js";
@@ -241,6 +241,7 @@ export class GLView {
     const m = mixOf(field, this.mix);
     const taus = field.suns.map((s) => field.arrays[s.tau]);
     const first = taus.length ? taus[0] : field.arrays.tau_light; // (zero without a sun)
+    const depth = (t) => depthTexels(t, field.tauPower);
     const shaped = shapedSuns(field);
     const groups = Array.from({ length: Math.ceil(SHAPE_TERMS / 4) }, (_, g) => 4 * g);
     const layout = { suns: field.suns.length, shaped, env: !!m.env };
@@ -251,9 +252,9 @@ export class GLView {
       fast: phaseLobes(field.header.phase) && field.suns.length > MOVING_PHASE_SUNS ? null : this.program({ packed: true, ...layout, shaped: [], phase }),
     };
     const textures = {
-      densTau: make(sigma_t, gl.RG16F, gl.RG, interleaved([sigma_t.data, first.data]), gl.LINEAR),
-      tauA: taus.length > 1 ? make(sigma_t, gl.RGBA16F, gl.RGBA, interleaved(taus.slice(1, 5).map((t) => t.data), 4), gl.LINEAR) : null,
-      tauB: taus.length > 5 ? make(sigma_t, gl.RGBA16F, gl.RGBA, interleaved(taus.slice(5).map((t) => t.data), 4), gl.LINEAR) : null,
+      densTau: make(sigma_t, gl.RG16F, gl.RG, interleaved([halfFloats(sigma_t.data), depth(first)]), gl.LINEAR, gl.FLOAT),
+      tauA: taus.length > 1 ? make(sigma_t, gl.RGBA16F, gl.RGBA, interleaved(taus.slice(1, 5).map(depth), 4), gl.LINEAR, gl.FLOAT) : null,
+      tauB: taus.length > 5 ? make(sigma_t, gl.RGBA16F, gl.RGBA, interleaved(taus.slice(5).map(depth), 4), gl.LINEAR, gl.FLOAT) : null,
       rad: make(radiance_ms, gl.RGB16F, gl.RGB, m.ms.data, gl.LINEAR, gl.FLOAT),
       maj: make(majorant, gl.R16F, gl.RED, majorant.data, gl.NEAREST),
       ...this.makeMoving(field, m),
@@ -288,7 +289,7 @@ export class GLView {
       edge: field.edge,
       lightUnit: field.suns.map((s) => towardLight(field.worldToUnit, s.direction)),
       sigmaScale: Number(sigma_t.scale),
-      tauScale: taus.map((t) => Number(t.scale)),
+      tauPower: field.tauPower,
       majScale: Number(majorant.scale),
       ...m.uniforms,
       albedo: field.albedo,
@@ -372,11 +373,11 @@ export class GLView {
     set("uniformMatrix4fv", "uWorldToUnit", true, f.worldToUnit);
     set("uniform1f", "uStep", f.step * stepScale);
     set("uniform1f", "uSigmaScale", f.sigmaScale);
+    set("uniform1f", "uTauPower", f.tauPower);
     set("uniform3fv", "uRadScale", f.radScale);
     set("uniform3fv", "uSky", f.background);
     set("uniform3fv", "uEnvScale", f.envScale);
     if (f.suns) {
-      set("uniform1fv", "uTauScale[0]", f.tauScale);
       set("uniform3fv", "uDirect[0]", f.direct.flat());
       set("uniform3fv", "uToLight[0]", f.toLight.flat());
       set("uniform3fv", "uLightUnit[0]", f.lightUnit.flat());

@@ -74,7 +74,7 @@ vec4 gB${k}[4];                  // its functions of direction at the ray's dire
     )
     .join("\n");
   const tauLines = range(suns)
-    .map((k) => `  s.tau[${k}] = tauAt(pc, uLightUnit[${k}], ${tauTexel(k)} * uTauScale[${k}]);`)
+    .map((k) => `  s.tau[${k}] = tauAt(pc, uLightUnit[${k}], depthOf(${tauTexel(k)}));`)
     .join("\n");
   const viewLines = shapedSuns
     .map(
@@ -95,9 +95,9 @@ precision highp float;
 precision highp int;
 precision highp sampler3D;
 
-uniform sampler3D uDensTau;   // R: sigma_t / sigmaScale, G: the first sun's tau_light (field grid,
-                              // linear); PACKED: R as above, GBA: L_in
-uniform sampler3D uTauA;      // RGBA: suns 1-4's tau_light (linear; several suns only)
+uniform sampler3D uDensTau;   // R: sigma_t / sigmaScale, G: the first sun's tau_light texel (field
+                              // grid, linear; depthOf); PACKED: R as above, GBA: L_in
+uniform sampler3D uTauA;      // RGBA: suns 1-4's tau_light texels (linear; several suns only)
 uniform sampler3D uTauB;      // RGBA: suns 5-8's
 uniform sampler3D uSunT;      // SUN_T: RGBA, suns 1-4's exp(-tau_light) (linear, mipmapped)
 uniform sampler3D uRad;       // RGB: L_ms, the lights' components mixed / uRadScale (linear)
@@ -116,7 +116,7 @@ uniform vec2 uSize;           // image size in pixels
 uniform mat4 uWorldToUnit;    // world -> unit cube [0,1]^3 of the field
 uniform float uStep;          // largest segment, world units
 uniform float uSigmaScale;    // sigma_t per world unit = texel * uSigmaScale
-uniform float uTauScale[NS];  // a sun's tau_light = texel * its scale
+uniform float uTauPower;      // the tau texels hold q = exp(-uTauPower tau_light) (0: tau_light)
 uniform vec3 uRadScale;       // L_ms = texel * uRadScale
 uniform vec3 uDirect[NS];     // each sun's irradiance / 4pi (times phaseFactor per ray)
 uniform bool uAnisotropic;    // whether the phase is Henyey-Greenstein, not isotropic
@@ -181,6 +181,12 @@ void viewBasis(vec3 v, out vec4 B[4]) {
 // where the light enters the box, within uEdge, the integral of sigma_t to it (3 midpoints; the
 // grid's texture clamps there). A point on the box's surface, where a ray enters it, counts as
 // inside; the light never leaves through the faces it runs parallel to.
+// A sun's tau_light from its texel, interpolated as q = exp(-uTauPower tau) (the server's field;
+// q >= exp(-16 uTauPower): the light march stops at optical depth 16).
+float depthOf(float q) {
+  return uTauPower > 0.0 ? -log(max(q, exp(-16.0 * uTauPower))) / uTauPower : q;
+}
+
 float tauAt(vec3 pc, vec3 lu, float grid) {
   vec3 te = mix(max(-pc / lu, (1.0 - pc) / lu), vec3(1e30), lessThan(abs(lu), vec3(1e-9)));
   float tExit = max(min(min(te.x, te.y), te.z), 0.0);
