@@ -37,9 +37,9 @@ ITERATIONS = 10
 #: Optical depth where the light march stops: exp(-16) ~ 1e-7 of the light is left.
 TAU_MAX = 16.0
 #: The power of the transmittance the grid's textures interpolate (module docstring). Camera-
-#: weighted single scattering against exact optical depth at 400 k points of the bench's thick
-#: clouds (dense, thick, holdout_thick, sphere; side / back), fitted: tau 0.981-0.989 side-lit
-#: and 0.946-0.977 back-lit; T^0.3 0.981-0.990 and 0.984-0.986; T^0.2 and T^0.5 a little worse.
+#: weighted single scattering against exact optical depth at 400 k points of the bench's dense
+#: and thick clouds and its sphere, fitted: tau 0.981-0.988 side-lit and 0.946-0.972 back-lit;
+#: T^0.3 0.981-0.990 and 0.984-0.986; T^0.2 and T^0.5 a little worse.
 TAU_POWER = 0.3
 
 
