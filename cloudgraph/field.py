@@ -99,6 +99,13 @@ MS_TR_MIN = 1e-2
 #: Multiple-scattering grid points per chunk (times MS_DIRECTIONS rays), and field points per
 #: chunk of the light march: chunks bound the device memory and may run on other workers.
 MS_CHUNK = 1 << 12
+#: The bake's G = albedo L' (what a flight from a grid point reaches) is interpolated between
+#: grid points as G^G_POWER per channel, as tau_light is as T^TAU_POWER: it rises steeply toward
+#: a lit surface, and interpolating G itself read the field's multiple scattering bright back-
+#: lit. thick (blender at optical depth 2 a voxel), all orders, albedo 1, field at 16 spp against
+#: 1024-spp volpath, binned relMAE / mean: back-lit 5.59 % / 1.053 with G, 5.21 % / 1.049 with
+#: G^0.5, 5.09 % / 1.047 with G^0.3 (gather 4.32 % / 1.037); side-lit 2.63, 2.58, 2.56 %.
+G_POWER = 0.3
 #: An anisotropic phase: walks per multiple-scattering point (phase.phase_walk, its first
 #: events exact, from directions half uniform and half from the phase about the light).
 WALKS = 64
@@ -361,14 +368,12 @@ def field_chunk(builder, stage: str, index: int, inputs: dict) -> tuple[np.ndarr
         tau = _optical_depth(medium, to_jit(mi.Point3f, q), to_light, step)
         values = np.array(tau, np.float32)[:, None]
     elif "lobes" in inputs:
-        values = _walk_ms(medium, linear_texture(np.asarray(inputs["G"])), q, inputs, seed=a)
+        values = _walk_ms(medium, g_texture(inputs["G"]), q, inputs, seed=a)
     else:
         sky = float(inputs["sky"][0]) if "sky" in inputs else 0.0
         env = envmap_emitter(str(inputs["envmap"][0])) if "envmap" in inputs else None
         step = float(inputs["step"][0])
-        values = _gather_ms(
-            medium, linear_texture(np.asarray(inputs["G"])), q, step, seed=a, sky=sky, env=env
-        )
+        values = _gather_ms(medium, g_texture(inputs["G"]), q, step, seed=a, sky=sky, env=env)
     return np.array([a]), values
 
 
@@ -495,6 +500,17 @@ def _optical_depth(medium, p: mi.Point3f, w: mi.Vector3f, step: float) -> mi.Flo
     return dr.minimum(tau, TAU_MAX)
 
 
+def g_texture(G) -> mi.Texture3f:
+    """The texture of a grid of G = albedo L' (nz, ny, nx, 3): G^G_POWER, trilinear."""
+    return linear_texture((np.maximum(np.asarray(G, np.float32), 0.0) ** G_POWER).astype(np.float32))
+
+
+def g_at(G_tex, pu, mask=True) -> mi.Color3f:
+    """G read from :func:`g_texture` at unit-cube points pu."""
+    g = G_tex.eval(pu, mask)
+    return mi.Color3f(*(dr.power(c, 1.0 / G_POWER) for c in g))
+
+
 def _gather_ms(
     medium, G_tex, points: np.ndarray, step: float, seed: int, sky: float = 0.0, env=None
 ) -> np.ndarray:
@@ -535,8 +551,7 @@ def _march_ms(medium, G_tex, o: mi.Point3f, d: mi.Vector3f, step: float, sky: fl
 
     def at(t):
         x = o + t * d
-        g = G_tex.eval(medium.world_to_unit @ mi.Point3f(x))
-        return medium.sigma_t(x), mi.Color3f(g[0], g[1], g[2])
+        return medium.sigma_t(x), g_at(G_tex, medium.world_to_unit @ mi.Point3f(x))
 
     L = mi.Color3f(0.0)  # Gathered radiance
     Tr = mi.Float(1.0)  # Transmittance from the point
@@ -596,8 +611,7 @@ def _walk_ms(medium, G_tex, points: np.ndarray, inputs: dict, seed: int) -> np.n
     pdf = 0.5 / (4.0 * dr.pi) + 0.5 * hg_phase(lobes, dr.dot(w, s))
 
     def tail(q, mask):
-        g = G_tex.eval(medium.world_to_unit @ mi.Point3f(q), mask)
-        return mi.Color3f(g[0], g[1], g[2])
+        return g_at(G_tex, medium.world_to_unit @ mi.Point3f(q), mask)
 
     def nothing(mask, w):  # a sun's component: nothing behind the medium
         return mi.Color3f(0.0)

@@ -158,6 +158,22 @@ def test_the_rim_of_a_back_lit_dense_cloud_reads_the_light_as_gather_does(varian
     assert rel_mae(field, gather) < 0.06
 
 
+def test_the_bake_reads_g_between_grid_points_as_its_power(variant):
+    # G = albedo L' rises steeply toward a lit surface: between grid points the bake's flights
+    # read it as G^G_POWER interpolated (exact at the points), not as G
+    import mitsuba as mi
+
+    from cloudgraph.field import G_POWER, g_at, g_texture
+
+    G = np.array([[[[1.0, 4.0, 0.0], [9.0, 1.0, 2.0]]]], np.float32)  # (1, 1, 2, 3): two texels in x
+    x = np.array([0.25, 0.5, 0.625, 0.75])  # texel centres at 0.25 and 0.75
+    got = np.array(g_at(g_texture(G), mi.Point3f(x, 0.5, 0.5))).T  # (4, 3)
+    f = np.clip((x - 0.25) / 0.5, 0, 1)[:, None]
+    a, b = G[0, 0, 0] ** G_POWER, G[0, 0, 1] ** G_POWER
+    np.testing.assert_allclose(got, ((1 - f) * a + f * b) ** (1 / G_POWER), rtol=1e-4, atol=1e-6)
+    assert got[1, 0] < 0.95 * 5.0  # well below the mean of 1 and 9 halfway
+
+
 def test_field_renders_are_deterministic_and_converged_at_one_sample(sphere):
     volume, scene, cache = sphere["volume"], sphere["scene"], sphere["cache"]
     r = renderer(cache, volume, scene)
