@@ -311,18 +311,22 @@ export class GLView {
       }),
       toLight,
     };
-    this.warmUp();
+    this.warmUp(field.worldBbox);
   }
 
-  /** Draws one pixel with each of the field's programs, off screen: a driver that compiles a
-   * program on its first draw (SwiftShader takes seconds) does so now, while the field
-   * arrives, not on the first frame of a move. */
-  warmUp() {
+  /** Draws a few pixels with each of the field's programs, off screen, through the medium's
+   * box (``bbox``: [lo, hi], world) and past it: a driver that compiles a program, or its
+   * texture reads, on first use (SwiftShader takes seconds) does so now, while the field
+   * arrives, not on the first frames of a move. */
+  warmUp(bbox) {
     const gl = this.gl;
-    const cam = { eye: [0, 0, -1e3], target: [0, 0, 0], up: [0, 1, 0], fov: 40 };
-    this.offscreen(1, 1, gl.RGBA8, () => {
-      for (const fast of [false, true]) this.draw(cam, 1, 1, { fast, stepScale: fast ? 2 : 1 });
-      gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(4));
+    const [lo, hi] = bbox;
+    const target = lo.map((v, i) => (v + hi[i]) / 2);
+    const r = Math.hypot(...hi.map((v, i) => v - lo[i]));
+    const cam = { eye: [target[0], target[1], target[2] - 2 * r], target, up: [0, 1, 0], fov: 40 };
+    this.offscreen(4, 4, gl.RGBA8, () => {
+      for (const fast of [false, true]) this.draw(cam, 4, 4, { fast, stepScale: fast ? 2 : 1 });
+      gl.readPixels(0, 0, 4, 4, gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(64));
     });
   }
 
