@@ -210,9 +210,14 @@ def api_requests(page):
 
 def assert_orbit_holds(page, what: str, min_fps: float) -> None:
     """Orbiting draws at least ``min_fps`` frames a second, never below 128 px inside, once the
-    frame budget has found its level (two first seconds of orbit, not counted)."""
-    warm = orbit(page, ms=2000, dx=50)
-    print(f"{what} orbit, first seconds: {warm['fps']:.1f} frames/s, sizes {sorted(set(warm['sizes']))}")
+    frame budget has found its level (first seconds of orbit, not counted: two, or up to ten
+    while frames come slowly, as when a rest frame's exact march at full size, seconds on a
+    software GPU, was still being drawn when the orbit began)."""
+    for _ in range(5):
+        warm = orbit(page, ms=2000, dx=50)
+        print(f"{what} orbit, first seconds: {warm['fps']:.1f} frames/s, sizes {sorted(set(warm['sizes']))}")
+        if warm["fps"] >= min_fps / 2:
+            break
     r = orbit(page, ms=3000, dx=150)
     print(f"{what} orbit: {r['fps']:.1f} frames/s, internal {min(r['sizes'])}..{max(r['sizes'])} px")
     assert r["fps"] >= min_fps, f"{r['fps']:.1f} frames/s while orbiting (sizes {r['sizes'][-10:]})"
