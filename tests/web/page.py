@@ -210,10 +210,10 @@ def api_requests(page):
 
 def assert_orbit_holds(page, what: str, min_fps: float) -> None:
     """Orbiting draws at least ``min_fps`` frames a second, never below 128 px inside, once the
-    frame budget has found its level (first seconds of orbit, not counted: two, or up to ten
+    frame budget has found its level (first seconds of orbit, not counted: two, or up to 30
     while frames come slowly, as when a rest frame's exact march at full size, seconds on a
     software GPU, was still being drawn when the orbit began)."""
-    for _ in range(5):
+    for _ in range(15):
         warm = orbit(page, ms=2000, dx=50)
         print(f"{what} orbit, first seconds: {warm['fps']:.1f} frames/s, sizes {sorted(set(warm['sizes']))}")
         if warm["fps"] >= min_fps / 2:
