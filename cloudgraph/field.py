@@ -502,7 +502,7 @@ def _optical_depth(medium, p: mi.Point3f, w: mi.Vector3f, step: float) -> mi.Flo
 
 def g_texture(G) -> mi.Texture3f:
     """The texture of a grid of G = albedo L' (nz, ny, nx, 3): G^G_POWER, trilinear."""
-    return linear_texture((np.maximum(np.asarray(G, np.float32), 0.0) ** G_POWER).astype(np.float32))
+    return linear_texture(np.maximum(np.asarray(G, np.float32), 0.0) ** np.float32(G_POWER))
 
 
 def g_at(G_tex, pu, mask=True) -> mi.Color3f:

@@ -43,6 +43,11 @@ TAU_MAX = 16.0
 TAU_POWER = 0.3
 
 
+def depth_floor(power: float = TAU_POWER) -> float:
+    """The least q = exp(-power tau) a grid holds: the light march stops at TAU_MAX."""
+    return float(np.exp(-power * TAU_MAX))
+
+
 def sub_samples(sigma_t: np.ndarray, voxel: float) -> np.ndarray:
     """(M, 3) grid coordinates (x, y, z; grid point i at i) of the sub-voxel samples around the
     grid points of (nz, ny, nx) ``sigma_t`` whose neighbourhood holds a voxel of optical depth
@@ -113,5 +118,5 @@ def fit_depth(
     x0 = flat_q[free]
     dx = spla.lsqr(A, b - A @ x0, atol=1e-6, btol=1e-6, iter_lim=ITERATIONS)[0]
     q = flat_q.copy()
-    q[free] = np.clip(x0 + dx, np.exp(-TAU_POWER * TAU_MAX), 1.0)
+    q[free] = np.clip(x0 + dx, depth_floor(), 1.0)
     return (-np.log(q) / TAU_POWER).reshape(tau.shape).astype(np.float32)

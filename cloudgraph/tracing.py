@@ -17,7 +17,7 @@ import mitsuba as mi
 import numpy as np
 from scipy.ndimage import maximum_filter
 
-from .light_depth import TAU_MAX, TAU_POWER
+from .light_depth import TAU_POWER, depth_floor
 from .volume import Volume
 
 #: Empty-space blocks, voxels a side.
@@ -44,7 +44,7 @@ def depth_at(texture, pu, active, power: float = TAU_POWER):
     value = texture.eval(pu, active)[0]
     if not power:
         return value
-    return -dr.log(dr.maximum(value, float(np.exp(-power * TAU_MAX)))) / power
+    return -dr.log(dr.maximum(value, depth_floor(power))) / power
 
 
 def block_majorant(grid: np.ndarray, block: int = BLOCK) -> np.ndarray:

@@ -14,7 +14,7 @@ import math
 import numpy as np
 from scipy.ndimage import map_coordinates
 
-from cloudgraph.light_depth import TAU_POWER
+from cloudgraph.light_depth import TAU_POWER, depth_floor
 
 from ..helpers import box_interval, latlong_lookup, pixel_rays
 
@@ -268,7 +268,7 @@ def _tau_light(header: dict, values: dict, p: np.ndarray, sun: dict) -> np.ndarr
     power = header.get("tau_power", 0.0)  # the grid interpolates exp(-power tau) (0: tau)
     if power:
         q = _sample(np.exp(-power * values[sun["tau"]]), p)
-        tau = -np.log(np.maximum(q, np.exp(-16.0 * power))) / power
+        tau = -np.log(np.maximum(q, depth_floor(power))) / power
     else:
         tau = _sample(values[sun["tau"]], p)
     if edge.any():

@@ -38,7 +38,8 @@ function vec(v, n, what) {
  * worldBbox, light: { direction, irradiance }, albedo, step (world units), maxDtau (a
  * segment's optical depth at most), edge (world units: where the light enters the box within
  * this, tau_light is integrated from sigma_t), tauPower (the tau arrays are interpolated as
- * exp(-tauPower tau); 0: as tau), arrays: { name: { data: Uint16Array of float16 bits, shape, scale } }, bytes }.
+ * exp(-tauPower tau); 0: as tau), arrays: { name: { data: Uint16Array of float16 bits, shape,
+ * scale } }, bytes }.
  * Throws FieldError naming what is wrong.
  */
 export function decodeField(buffer) {
