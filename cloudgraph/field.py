@@ -8,10 +8,10 @@ the density grid, split as the ``gather`` estimator splits it:
 
 - single scattering, exact to the grid: ``tau_light`` is the optical depth from each grid point
   to the light, by a deterministic midpoint march of the trilinear density in Dr.Jit (step
-  :data:`TAU_STEP` voxels), interpolated between grid points as exp(-TAU_POWER tau) (neither
-  tau, too dark at a shadow's edge between grid points, nor exp(-tau), too bright). In
-  optically thick voxels the grid values are fitted to sub-voxel samples of the march
-  (light_depth.py);
+  :data:`TAU_STEP` voxels), interpolated between grid points as a power of exp(-tau) (neither
+  tau, too dark at a shadow's edge between grid points, nor exp(-tau), too bright), on a grid
+  twice as fine where that fits (its points in optically thick voxels marched too), else on
+  the field's, fitted there to sub-voxel samples of the march (light_depth.py);
 - everything after the first scattering, from the graph, as ``gather`` computes it at its
   camera collision: one more flight from the grid point to p'', where albedo L'_search (the
   ``radiance_gather`` of Eq. 4.25) stands in for the rest; the flight is integrated over
@@ -44,7 +44,7 @@ from scipy.spatial import cKDTree
 from .chunks import placed
 from .field_file import RadianceField, component_names, pack_array, shape_name
 from .field_grid import FieldPoints, to_world, unit_points
-from .light_depth import TAU_MAX, TAU_POWER, fit_depth
+from .light_depth import FINE_POWER, TAU_MAX, TAU_POWER, fine_depth, fine_shape, fit_depth
 from .lights import Lights
 from .mitsuba_scene import envmap_emitter
 from .phase import (
@@ -238,12 +238,21 @@ def bake_field(
     step = np.array([MS_STEP * voxel])
     taus = []
 
-    def light_depths() -> list:  # optical depth to each sun on the field grid, placed once
+    # optical depth to each sun: at twice the grid's resolution where that fits, else fitted to
+    # the sub-voxel samples on the grid (light_depth.py), read as T^tau_power between points
+    fine = fine_shape((nz, ny, nx), len(marched)) is not None
+    tau_power = FINE_POWER if fine else TAU_POWER
+
+    def light_depths() -> list:  # placed once
         if not taus:
             for m in marched:
                 tau = placed(m, len(points) + len(fp.sub), 1)[:, 0]
                 tau_grid = _scatter(near, tau[: len(points)], (nz, ny, nx))
-                taus.append(fit_depth(tau_grid, fp.sigma_t, fp.sub_coords, tau[len(points) :]))
+                samples = (fp.sub_coords, tau[len(points) :])
+                if fine:
+                    taus.append(fine_depth(tau_grid, near.reshape(nz, ny, nx), *samples))
+                else:
+                    taus.append(fit_depth(tau_grid, fp.sigma_t, *samples))
         return taus
 
     gathered, walked = [], []
@@ -264,6 +273,7 @@ def bake_field(
                 "bounces": np.array([phase_bounces(phase) - 1 if max_depth < 0 else max_depth - 1]),
                 "tail": np.array([int(max_depth < 0)]),
                 "tau": light_depths()[c],  # (a sun's component c is directional light c)
+                "tau_power": np.array([tau_power]),
             }
             walked.append(c)
         gathered.append(chunks(builder, "field_ms", inputs))
@@ -305,7 +315,7 @@ def bake_field(
         "step": 0.5 * voxel,
         "max_dtau": MARCH_MAX_DTAU,
         "edge": EDGE_VOXELS * voxel,
-        "tau_power": TAU_POWER,
+        "tau_power": tau_power,
     }
     extra = {}
     if not lights.basis:  # a v1 light
@@ -616,10 +626,11 @@ def _walk_ms(medium, G_tex, points: np.ndarray, inputs: dict, seed: int) -> np.n
     def nothing(mask, w):  # a sun's component: nothing behind the medium
         return mi.Color3f(0.0)
 
-    tau = depth_texture(inputs["tau"])
+    power = float(inputs["tau_power"][0])
+    tau = depth_texture(inputs["tau"], power)
 
     def sun_tr(i, p, mask):  # the bake's own light march, interpolated as the camera's march does
-        return dr.exp(-depth_at(tau, medium.world_to_unit @ mi.Point3f(p), mask))
+        return dr.exp(-depth_at(tau, medium.world_to_unit @ mi.Point3f(p), mask, power))
 
     suns = [(to_light, mi.Color3f(*(float(c) for c in E)))]
     bounces = int(inputs["bounces"][0])

@@ -10,7 +10,8 @@ page's WebGL view: a small JSON header and float16 arrays, gzip-compressed
     then           arrays at header["arrays"][name]["offset"] (16-byte aligned), little-endian,
                    C order, (nz, ny, nx[, 3]): x varies fastest; value = stored * scale
 
-Arrays: ``sigma_t`` (per world unit), ``tau_light``, ``radiance_ms`` (RGB, per-channel scale)
+Arrays: ``sigma_t`` (per world unit), ``tau_light`` (at sigma_t's resolution or twice it:
+light_depth.py), ``radiance_ms`` (RGB, per-channel scale)
 and ``majorant`` (max sigma_t over blocks of :data:`~cloudgraph.tracing.BLOCK`^3 field voxels,
 dilated by one voxel: empty-space skipping). What the arrays hold: field.py. A field of v1.1
 ``lights`` has the header's ``lights`` in place of ``light``: per light component its type, its

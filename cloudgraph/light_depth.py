@@ -15,6 +15,15 @@ Between grid points the textures interpolate q = T^TAU_POWER = exp(-TAU_POWER ta
 where a cloud's shadow edge runs between grid points (the rim a back-lit camera sees: the light
 grazes a thin fringe) tau rises steeply across the light, and interpolating tau there reads
 the light far too low, interpolating T too high. The fit works in q too.
+
+Where the grid allows (:func:`fine_shape`: at most MAX_FINE_POINTS tau texels over all suns),
+tau_light is kept at twice the field's resolution instead (:func:`fine_depth`), unfitted: the
+sub-voxel samples are the fine grid's points in optically thick voxels, exact, and elsewhere
+the field's points are interpolated onto it. A back-lit camera sees the light graze a fringe
+thinner than a voxel, and no fit of the field's grid reads it there: camera-weighted, the
+fine grid halves the error per point (bench's thick cloud back-lit: mean |dT| 0.103 -> 0.042 of
+the light seen). Interpolated as T^FINE_POWER, the light's mean is right (0.987-1.002 of the
+exact march on the bench's dense and thick clouds, either view; T^0.3 reads it 0.975-0.994).
 """
 
 from __future__ import annotations
@@ -41,6 +50,20 @@ TAU_MAX = 16.0
 #: and thick clouds and its sphere, fitted: tau 0.981-0.988 side-lit and 0.946-0.972 back-lit;
 #: T^0.3 0.981-0.990 and 0.984-0.986; T^0.2 and T^0.5 a little worse.
 TAU_POWER = 0.3
+
+
+#: The fine grid's power of the transmittance (module docstring).
+FINE_POWER = 0.5
+#: At most this many tau_light texels over all suns for the fine grid (2^24: a density grid of
+#: 126 x 86 x 154, a sixteenth of the Disney cloud's, has 13.3 M with one sun).
+MAX_FINE_POINTS = 1 << 24
+
+
+def fine_shape(shape, suns: int) -> tuple | None:
+    """(nz, ny, nx) of the fine tau grid of an (nz, ny, nx) field grid lit by ``suns``
+    directional lights, or None where they would hold over MAX_FINE_POINTS texels."""
+    fine = tuple(2 * int(n) for n in shape)
+    return fine if suns * int(np.prod(fine)) <= MAX_FINE_POINTS else None
 
 
 def depth_floor(power: float = TAU_POWER) -> float:
@@ -120,3 +143,36 @@ def fit_depth(
     q = flat_q.copy()
     q[free] = np.clip(x0 + dx, depth_floor(), 1.0)
     return (-np.log(q) / TAU_POWER).reshape(tau.shape).astype(np.float32)
+
+
+def fine_depth(tau: np.ndarray, near: np.ndarray, coords: np.ndarray, tau_samples: np.ndarray) -> np.ndarray:
+    """tau_light (2nz, 2ny, 2nx) at twice the resolution of the field grid's ``tau`` (nz, ny,
+    nx; exact at the grid points ``near``, (nz, ny, nx) bool, the rest unset): the sub-voxel
+    samples (``coords`` (M, 3) grid coordinates, the fine grid's points by SUB_OFFSETS;
+    ``tau_samples`` their exact values) where they are, elsewhere the field grid's q =
+    T^FINE_POWER interpolated from the points ``near`` alone (points where none is near hold
+    0). The fine grid's point 2i + (0, 1) sits at i -/+ 1/4 of the field grid's."""
+    q = np.where(near, np.exp(-FINE_POWER * np.asarray(tau, np.float32)), np.float32(0.0))
+    weight = near.astype(np.float32)  # (float32: the fine grid of a large field is 2^24 points)
+    for axis in range(3):  # linear 2x on each axis: weights 3/4, 1/4 of the two nearest points
+        q, weight = _doubled(q, axis), _doubled(weight, axis)
+    fine = np.divide(q, weight, out=np.ones_like(q), where=weight > 0)
+    del q, weight
+    if len(coords):
+        j = np.rint(2.0 * np.asarray(coords) + 0.5).astype(np.int64)
+        fine[j[:, 2], j[:, 1], j[:, 0]] = np.exp(-FINE_POWER * np.asarray(tau_samples, np.float32))
+    np.clip(fine, np.float32(depth_floor(FINE_POWER)), np.float32(1.0), out=fine)
+    np.log(fine, out=fine)
+    fine *= np.float32(-1.0 / FINE_POWER)
+    return fine
+
+
+def _doubled(a: np.ndarray, axis: int) -> np.ndarray:
+    """``a`` at twice its resolution along ``axis``, linearly, clamped at the ends as a
+    texture is: point 2i + (0, 1) at i -/+ 1/4."""
+    a = np.moveaxis(a, axis, 0)
+    lower = np.concatenate([a[:1], a[:-1]])  # a[i - 1], clamped
+    upper = np.concatenate([a[1:], a[-1:]])  # a[i + 1]
+    three = np.float32(0.75) * a
+    out = np.stack([three + np.float32(0.25) * lower, three + np.float32(0.25) * upper], axis=1)
+    return np.moveaxis(out.reshape(-1, *a.shape[1:]), 0, axis)

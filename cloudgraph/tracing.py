@@ -17,7 +17,7 @@ import mitsuba as mi
 import numpy as np
 from scipy.ndimage import maximum_filter
 
-from .light_depth import TAU_POWER, depth_floor
+from .light_depth import depth_floor
 from .volume import Volume
 
 #: Empty-space blocks, voxels a side.
@@ -32,14 +32,15 @@ def linear_texture(values: np.ndarray):
     return mi.Texture3f(tensor, filter_mode=dr.FilterMode.Linear, wrap_mode=dr.WrapMode.Clamp)
 
 
-def depth_texture(tau: np.ndarray, power: float = TAU_POWER):
-    """The texture of an (nz, ny, nx) optical-depth grid: q = exp(-power tau), trilinear (power
-    0, a field file of before the header's ``tau_power``: tau itself)."""
+def depth_texture(tau: np.ndarray, power: float):
+    """The texture of an optical-depth grid (nz, ny, nx; the field's or finer:
+    light_depth.py): q = exp(-power tau), trilinear (power 0, a field file of before the
+    header's ``tau_power``: tau itself)."""
     tau = np.asarray(tau, np.float64)
     return linear_texture((np.exp(-power * tau) if power else tau).astype(np.float32))
 
 
-def depth_at(texture, pu, active, power: float = TAU_POWER):
+def depth_at(texture, pu, active, power: float):
     """Optical depth read from :func:`depth_texture` at unit-cube points pu (Dr.Jit)."""
     value = texture.eval(pu, active)[0]
     if not power:

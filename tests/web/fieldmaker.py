@@ -14,7 +14,7 @@ import math
 import numpy as np
 from scipy.ndimage import map_coordinates
 
-from cloudgraph.light_depth import TAU_POWER, depth_floor
+from cloudgraph.light_depth import FINE_POWER, TAU_POWER, depth_floor
 
 from ..helpers import box_interval, latlong_lookup, pixel_rays
 
@@ -159,14 +159,21 @@ def _suns(header: dict) -> list[dict]:
     return [sun]
 
 
-def light_depth_from_above(field: dict) -> None:
+def light_depth_from_above(field: dict, fine: bool = False) -> None:
     """Replaces ``field``'s tau_light by the optical depth its density really gives for its
     light from above (direction -y): the integral of sigma_t from each texel centre up to the
     box's top face, continuous across the medium's edge (make_field's own tau_light jumps
-    there, which moving frames, interpolating exp(-tau), cannot follow)."""
+    there, which moving frames, interpolating exp(-tau), cannot follow). ``fine``: on a grid
+    twice as fine (the density read there as the texture reads it), read as T^FINE_POWER, as
+    the server's bake makes it where the grid allows (light_depth.py)."""
     h, v = field["header"], field["values"]
     assert h["light"]["direction"] == [0.0, -1.0, 0.0]
     sigma = v["sigma_t"]  # (nz, ny, nx), y up; sigma per world unit
+    if fine:
+        nz, ny, nx = (2 * n for n in sigma.shape)
+        z, y, x = np.meshgrid(*((np.arange(n) + 0.5) / n for n in (nz, ny, nx)), indexing="ij")
+        sigma = _sample(sigma, np.stack([x.ravel(), y.ravel(), z.ravel()], 1)).reshape(nz, ny, nx)
+        h["tau_power"] = FINE_POWER
     dy = float(np.asarray(h["unit_to_world"])[1, 1]) / sigma.shape[1]
     above = np.cumsum(sigma[:, ::-1, :], axis=1)[:, ::-1, :] * dy - 0.5 * sigma * dy
     put_array(field, "tau_light", above, float(above.max()) / 1000.0)

@@ -9,11 +9,12 @@ import copy
 import numpy as np
 import pytest
 
-from cloudgraph.light_depth import TAU_POWER
+from cloudgraph.light_depth import FINE_POWER, TAU_POWER
 
 from ..helpers import rotated_affine
 from .browser import ARGS, chromium_path, static_page
-from .fieldmaker import encode, make_field, put_array, reference_render, rel_mae
+from .fieldmaker import _sample as sample
+from .fieldmaker import encode, light_depth_from_above, make_field, put_array, reference_render, rel_mae
 
 sync_api = pytest.importorskip("playwright.sync_api")
 
@@ -133,19 +134,21 @@ def test_march_matches_numpy_reference(page, affine):
         assert img.mean() == pytest.approx(ref.mean(), rel=0.01)
 
 
-@pytest.mark.parametrize("power", [TAU_POWER, None], ids=["tau_power", "no tau_power"])
-def test_tau_light_is_interpolated_as_the_header_says(page, power):
+@pytest.mark.parametrize("grid", ["tau_power", "no tau_power", "fine"])
+def test_tau_light_is_interpolated_as_the_header_says(page, grid):
     """Between grid points the page reads tau_light as the server's field does: interpolating
     exp(-tau_power tau), or tau itself where the header has no tau_power (a field of before
-    it). A tau_light that steps between 0 and 6 from texel to texel tells the two apart."""
+    it), on the field's grid or on one twice as fine (light_depth.py). A tau_light that steps
+    between 0 and 6 from texel to texel tells the readings apart."""
     field = make_field()
-    tau = field["values"]["tau_light"]
-    x = np.arange(tau.shape[2])
-    put_array(field, "tau_light", np.broadcast_to(6.0 * (x % 2), tau.shape).astype(np.float32), 0.01)
-    if power is None:
+    shape = np.array(field["values"]["tau_light"].shape) * (2 if grid == "fine" else 1)
+    x = np.arange(shape[2])
+    put_array(field, "tau_light", np.broadcast_to(6.0 * (x % 2), shape).astype(np.float32), 0.01)
+    field["header"]["tau_power"] = FINE_POWER if grid == "fine" else TAU_POWER
+    if grid == "no tau_power":
         del field["header"]["tau_power"]
     other = copy.deepcopy(field)
-    other["header"]["tau_power"] = 0.0 if power else TAU_POWER
+    other["header"]["tau_power"] = 0.0 if grid != "no tau_power" else TAU_POWER
     lo, hi = (np.asarray(v) for v in field["header"]["world_bbox"])
     c, r = (lo + hi) / 2, np.linalg.norm(hi - lo)
     cam = camera(c + r * np.array([0.3, 0.4, 1.2]), c)
@@ -153,6 +156,39 @@ def test_tau_light_is_interpolated_as_the_header_says(page, power):
     ref = reference_render(field, cam, exposure=1.0)
     assert rel_mae(img, ref) < 0.025
     assert rel_mae(reference_render(other, cam, exposure=1.0), ref) > 0.1  # the other reading
+
+
+def test_a_fine_tau_grid_is_drawn_still_and_moving(page):
+    """A tau_light twice as fine as the density grid (light_depth.py): the exact march reads it
+    at its own resolution, the moving camera's texture at each voxel's centre (the mean of the
+    eight fine texels around it in exp(-tau_power tau))."""
+    field = make_field()
+    light_depth_from_above(field, fine=True)
+    assert field["values"]["tau_light"].shape == tuple(2 * n for n in field["values"]["sigma_t"].shape)
+    lo, hi = (np.asarray(v) for v in field["header"]["world_bbox"])
+    c, r = (lo + hi) / 2, np.linalg.norm(hi - lo)
+    cam = camera(c + r * np.array([0.3, 0.4, 1.2]), c)
+    ref = reference_render(field, cam, exposure=1.0)
+    assert ref.mean() > 5, "the reference image is black: a useless test"
+    for fast, tol in ((False, 0.025), (True, 0.03)):
+        (img,) = render(page, field, [cam], exposure=1.0, fast=fast)
+        assert rel_mae(img, ref) < tol, f"fast={fast}"
+    # the moving texture's light at each voxel's centre: the fine grid read there
+    got = page.evaluate(
+        """async (b64) => {
+        const { decodeField } = await import('/js/field.js');
+        const { voxelTransmittance } = await import('/js/fieldtex.js');
+        const field = decodeField(Uint8Array.from(atob(b64), (c) => c.charCodeAt(0)).buffer);
+        const { tau_light, sigma_t } = field.arrays;
+        return Array.from(voxelTransmittance(tau_light, field.tauPower, sigma_t.shape));
+      }""",
+        base64.b64encode(encode(field)).decode(),
+    )
+    nz, ny, nx = field["values"]["sigma_t"].shape
+    z, y, x = np.meshgrid(*((np.arange(n) + 0.5) / n for n in (nz, ny, nx)), indexing="ij")
+    q = np.exp(-FINE_POWER * field["values"]["tau_light"])
+    expected = sample(q, np.stack([x.ravel(), y.ravel(), z.ravel()], 1)) ** (1 / FINE_POWER)
+    np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-6)
 
 
 def test_moving_camera_texture_is_close(page):

@@ -4,7 +4,7 @@ Disney-sized field's memory in the page."""
 from __future__ import annotations
 
 from .browser import new_page
-from .fieldmaker import encode, make_field
+from .fieldmaker import encode, light_depth_from_above, make_field
 from .page import errors_shown, open_scene
 
 #: The Disney cloud at 1/16 resolution: its field's grid.
@@ -13,10 +13,12 @@ DISNEY_16 = (154, 86, 126)
 
 def test_disney_sized_field_fits_in_memory(browser, service, data_dir):
     """A field the size of Disney 1/16's (126x86x154 voxels, its multiple scattering at the same
-    resolution, as the bake makes it) is drawn with at most 64 MB of textures and 200 MB of page
-    memory: the JS heap after loading plus the GPU textures."""
+    resolution and its tau_light at twice it, as the bake makes it) is drawn with at most 64 MB
+    of textures and 200 MB of page memory: the JS heap after loading plus the GPU textures."""
+    field = make_field(shape=DISNEY_16, block=8, ms_coarsen=1)
+    light_depth_from_above(field, fine=True)
     # (uncompressed: Chromium does not gunzip a response that a test fulfils)
-    body = encode(make_field(shape=DISNEY_16, block=8, ms_coarsen=1))
+    body = encode(field)
     pg = new_page(browser)
     try:
         pg.route(

@@ -90,8 +90,10 @@ export function decodeField(buffer) {
     if (!spec.channels && !Number.isFinite(scale)) throw new FieldError(`${name}: bad scale`);
     arrays[name] = { data: new Uint16Array(buffer, a.offset, count), shape, scale, block: a.block };
   }
-  if (arrays.sigma_t.shape.join() !== arrays.tau_light.shape.join()) {
-    throw new FieldError("sigma_t and tau_light differ in shape");
+  // tau_light at sigma_t's resolution, or twice it on every axis (cloudgraph/light_depth.py)
+  const tauShape = arrays.tau_light.shape;
+  if (tauShape.join() !== arrays.sigma_t.shape.join() && !tauShape.every((n, i) => n === 2 * arrays.sigma_t.shape[i])) {
+    throw new FieldError("tau_light is neither at sigma_t's resolution nor at twice it");
   }
   if (!(Number.isInteger(arrays.majorant.block) && arrays.majorant.block > 0)) {
     throw new FieldError("majorant: no block size");
@@ -113,7 +115,7 @@ export function decodeField(buffer) {
     throw new FieldError("the environments' backgrounds are not lat-long images of one size");
   }
   for (const sun of lights.suns) {
-    if (arrays[sun.tau].shape.join() !== arrays.sigma_t.shape.join()) throw new FieldError(`${sun.tau} differs in shape from sigma_t`);
+    if (arrays[sun.tau].shape.join() !== tauShape.join()) throw new FieldError(`${sun.tau} differs in shape from tau_light`);
   }
   return {
     header,

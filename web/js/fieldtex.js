@@ -48,6 +48,40 @@ export function depthTexels(array, power) {
   return out;
 }
 
+/** exp(-tau_light) of a sun's optical-depth array at the centres of the density grid's
+ * ``shape`` (nz, ny, nx) voxels, as the exact march reads it there: the texel's own value, or
+ * from a grid twice as fine (field.js) the mean of the eight texels around the centre in q =
+ * exp(-power tau), raised to 1 / power. Kept per array: a re-mix reads it again. */
+export function voxelTransmittance(array, power, shape) {
+  if (!TRANSMITTANCE.has(array)) TRANSMITTANCE.set(array, transmittanceOf(array, power, shape));
+  return TRANSMITTANCE.get(array);
+}
+
+const TRANSMITTANCE = new WeakMap();
+
+function transmittanceOf(array, power, shape) {
+  const [nz, ny, nx] = shape;
+  const scale = Number(array.scale);
+  const out = new Float32Array(nx * ny * nz);
+  if (array.shape[0] === nz) {
+    for (let v = 0; v < out.length; v++) out[v] = Math.exp(-scale * HALF[array.data[v]]);
+    return out;
+  }
+  const q = depthTexels(array, power);
+  const [fy, fx] = [2 * ny, 2 * nx];
+  let v = 0;
+  for (let k = 0; k < nz; k++) {
+    for (let j = 0; j < ny; j++) {
+      for (let i = 0; i < nx; i++, v++) {
+        let sum = 0;
+        for (let c = 0; c < 8; c++) sum += q[((2 * k + (c >> 2)) * fy + 2 * j + ((c >> 1) & 1)) * fx + 2 * i + (c & 1)];
+        out[v] = Math.pow(sum / 8, 1 / power);
+      }
+    }
+  }
+  return out;
+}
+
 /** Trilinear weights that resample an axis of m texel centres at n texel centres. */
 function axisWeights(n, m) {
   const i0 = new Int32Array(n);
@@ -126,7 +160,7 @@ export function packedField(field, mix, { phase = false } = {}) {
   const { sigma_t, radiance_ms } = field.arrays;
   const [nz, ny, nx] = sigma_t.shape;
   const [mz, my, mx] = radiance_ms.shape;
-  const taus = field.suns.map((s) => field.arrays[s.tau]);
+  const taus = field.suns.map((s) => voxelTransmittance(field.arrays[s.tau], field.tauPower, sigma_t.shape));
   const rad = mix.ms.data;
   const [sr, sg, sb] = mix.ms.scale;
   const X = axisWeights(nx, mx);
@@ -160,7 +194,7 @@ export function packedField(field, mix, { phase = false } = {}) {
         let eg = sg * c[1];
         let eb = sb * c[2];
         for (let s = 0; s < taus.length; s++) {
-          const direct = Math.exp(-Number(taus[s].scale) * HALF[taus[s].data[v]]);
+          const direct = taus[s][v];
           if (sunT) {
             sunT[4 * v + s] = direct;
           } else {

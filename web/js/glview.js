@@ -1,11 +1,26 @@
 // The WebGL2 renderer of a radiance field: 3D textures on the GPU, one draw per frame, and a
 // read-back of an image at a given size for comparisons. Knows nothing of the DOM around it.
 
-import { fragmentShader, tauTextures, textureUnits, VERTEX } from "./shaders.js";
+import { fragmentShader, textureUnits, VERTEX } from "./shaders.js";
 import { channelGroup, depthTexels, halfFloats, interleaved, mixedBackground, mixedRadiance, MOVING_PHASE_SUNS, packedField } from "./fieldtex.js";
 import { SHAPE_TERMS } from "./field.js";
 import { linearToSrgb8, srgbToLinear } from "./imagemath.js";
 import { cross, normalize, sub } from "./camera.js";
+
+/** [internal format, format] of a 16F texture of 1-4 channels (the suns' tau textures). */
+const TAU_FORMATS = [
+  ["R16F", "RED"],
+  ["RG16F", "RG"],
+  ["RGB16F", "RGB"],
+  ["RGBA16F", "RGBA"],
+];
+
+/** Channels a GPU keeps per texel of a tau texture of the next ``suns`` suns, at most four
+ * (RGB padded to RGBA). */
+function texelChannels(suns) {
+  const n = Math.min(4, Math.max(0, suns));
+  return n === 3 ? 4 : n;
+}
 
 /** Why this browser cannot draw the real-time view, or "" when it can. */
 export function webgl2Missing(canvas) {
@@ -134,8 +149,8 @@ export class GLView {
   }
 
   /**
-   * GPU bytes of a field's textures: RG16F density + tau, RGBA16F textures of the other suns'
-   * tau, RGBA16F-padded radiance, R16F majorant, the RGBA16F (sigma_t, L_in) texture of the
+   * GPU bytes of a field's textures: R16F density, 16F textures of the suns' tau (a channel
+   * each, at the tau grid's resolution), RGBA16F-padded radiance, R16F majorant, the RGBA16F (sigma_t, L_in) texture of the
    * moving camera with its mipmaps (and of an anisotropic field its suns' transmittance), four RGBA16F textures of view terms a shaped sun, and an
    * RGBA16F-padded lat-long background of the environment maps.
    */
@@ -143,11 +158,12 @@ export class GLView {
     const count = (a) => a.shape[0] * a.shape[1] * a.shape[2];
     const { sigma_t, radiance_ms, majorant } = field.arrays;
     const moving = ((movingPhase(field) ? 2 : 1) * 8 * 8) / 7; // the moving textures, with mips
-    const density = 4 + moving + 8 * tauTextures(field.suns.length);
+    const density = 2 + moving;
+    const taus = [0, 4].reduce((b, from) => b + 2 * texelChannels(field.suns.length - from) * count(field.arrays.tau_light), 0);
     const shape = shapedSuns(field).reduce((n, k) => n + 8 * Math.ceil(SHAPE_TERMS / 4) * count(field.arrays[field.suns[k].shape.array]), 0);
     const env = field.components.find((c) => c.background);
     const background = env ? 8 * field.arrays[env.background].shape[0] * field.arrays[env.background].shape[1] : 0;
-    return Math.round(density * count(sigma_t) + 8 * count(radiance_ms) + 2 * count(majorant) + shape + background);
+    return Math.round(density * count(sigma_t) + taus + 8 * count(radiance_ms) + 2 * count(majorant) + shape + background);
   }
 
   /**
@@ -240,8 +256,14 @@ export class GLView {
     const make = (arr, internal, format, data, filter, type) => this.makeTexture(arr, internal, format, data, filter, type);
     const m = mixOf(field, this.mix);
     const taus = field.suns.map((s) => field.arrays[s.tau]);
-    const first = taus.length ? taus[0] : field.arrays.tau_light; // (zero without a sun)
-    const depth = (t) => depthTexels(t, field.tauPower);
+    // a channel per sun, at the tau grid's resolution (the field's or twice it: field.js)
+    const tauTexture = (group) => {
+      if (!group.length) return null;
+      const [internal, format] = TAU_FORMATS[group.length - 1];
+      const texels = group.map((t) => depthTexels(t, field.tauPower));
+      const data = texels.length > 1 ? interleaved(texels) : texels[0];
+      return make(group[0], gl[internal], gl[format], data, gl.LINEAR, gl.FLOAT);
+    };
     const shaped = shapedSuns(field);
     const groups = Array.from({ length: Math.ceil(SHAPE_TERMS / 4) }, (_, g) => 4 * g);
     const layout = { suns: field.suns.length, shaped, env: !!m.env };
@@ -252,9 +274,9 @@ export class GLView {
       fast: phaseLobes(field.header.phase) && field.suns.length > MOVING_PHASE_SUNS ? null : this.program({ packed: true, ...layout, shaped: [], phase }),
     };
     const textures = {
-      densTau: make(sigma_t, gl.RG16F, gl.RG, interleaved([halfFloats(sigma_t.data), depth(first)]), gl.LINEAR, gl.FLOAT),
-      tauA: taus.length > 1 ? make(sigma_t, gl.RGBA16F, gl.RGBA, interleaved(taus.slice(1, 5).map(depth), 4), gl.LINEAR, gl.FLOAT) : null,
-      tauB: taus.length > 5 ? make(sigma_t, gl.RGBA16F, gl.RGBA, interleaved(taus.slice(5).map(depth), 4), gl.LINEAR, gl.FLOAT) : null,
+      dens: make(sigma_t, gl.R16F, gl.RED, halfFloats(sigma_t.data), gl.LINEAR, gl.FLOAT),
+      tauA: tauTexture(taus.slice(0, 4)),
+      tauB: tauTexture(taus.slice(4)),
       rad: make(radiance_ms, gl.RGB16F, gl.RGB, m.ms.data, gl.LINEAR, gl.FLOAT),
       maj: make(majorant, gl.R16F, gl.RED, majorant.data, gl.NEAREST),
       ...this.makeMoving(field, m),
@@ -407,7 +429,7 @@ export class GLView {
     set("uniform1f", "uEdge", f.edge);
     const t = this.textures;
     const units = [
-      ["uDensTau", fast ? t.packed : t.densTau],
+      ["uDens", fast ? t.packed : t.dens],
       ["uRad", t.rad],
       ["uMaj", t.maj],
       ["uTauA", t.tauA],

@@ -13,7 +13,7 @@
 //   segments of at most uMaxDtau at the block's majorant, and uStep; the first (1 - u) of one
 //   long, with one jitter u per pixel; stop when Tr < 1e-3
 // Several directional lights (a v1.1 field): single scattering summed over them, each with its
-// own tau_light (the first in uDensTau's G, the next in uTauA's and uTauB's channels), its E p
+// own tau_light (a channel of uTauA, suns 1-4, or uTauB, 5-8), its E p
 // per ray and its edge integral. L_ms is every component's radiance array mixed in the page by
 // the lights' intensities (one texture, glview.js), a sky's included.
 // An anisotropic phase's field adds to L_ms each sun's view terms: E sum_i c_i(x) B_i(d), with
@@ -34,26 +34,25 @@ void main() {
 export const MAX_STEPS = 4096;
 
 /** Texture units a program of ``suns`` directional lights, ``shaped`` of them with view terms,
- * binds: uDensTau, uRad, uMaj, the extra tau textures, four for each shaped sun. */
+ * binds: uDens, uRad, uMaj, the tau textures, four for each shaped sun. */
 export function textureUnits(suns, shaped) {
   return 3 + tauTextures(suns) + 4 * shaped;
 }
 
-/** RGBA textures of tau_light beside uDensTau's G: suns 1-4 (uTauA), 5-8 (uTauB). */
-export function tauTextures(suns) {
-  return Math.ceil(Math.max(0, suns - 1) / 4);
+/** Textures of the suns' tau_light texels, a channel each: suns 1-4 (uTauA), 5-8 (uTauB). */
+function tauTextures(suns) {
+  return Math.ceil(suns / 4);
 }
 
 /** The GLSL of sun k's tau_light texel at p (the exact march's). */
 function tauTexel(k) {
-  if (k === 0) return "st.g";
-  return `texture(uTau${k <= 4 ? "A" : "B"}, p).${"rgba"[(k - 1) % 4]}`;
+  return `texture(uTau${k < 4 ? "A" : "B"}, p).${"rgba"[k % 4]}`;
 }
 
 /**
- * The fragment shader. packed = false: the exact march, sigma_t and tau_light in one RG texture
- * and L_ms in another, L_in formed per sample as the server forms it (two fetches a step, more
- * with several suns). packed = true: one RGBA texture of (sigma_t, L_in) made in the page, one
+ * The fragment shader. packed = false: the exact march, sigma_t, tau_light and L_ms in a
+ * texture each, L_in formed per sample as the server forms it (three fetches a step, one more
+ * for each four suns past the first four). packed = true: one RGBA texture of (sigma_t, L_in) made in the page, one
  * fetch a step, for frames while the camera moves (L_in interpolated instead of exp(-tau)).
  * suns: the field's directional lights (0 .. MAX_SUNS of field.js); shaped: the indices of
  * those whose view terms the field holds (an anisotropic phase; the exact march only).
@@ -95,10 +94,11 @@ precision highp float;
 precision highp int;
 precision highp sampler3D;
 
-uniform sampler3D uDensTau;   // R: sigma_t / sigmaScale, G: the first sun's tau_light texel (field
-                              // grid, linear; depthOf); PACKED: R as above, GBA: L_in
-uniform sampler3D uTauA;      // RGBA: suns 1-4's tau_light texels (linear; several suns only)
-uniform sampler3D uTauB;      // RGBA: suns 5-8's
+uniform sampler3D uDens;      // R: sigma_t / sigmaScale (field grid, linear); PACKED: R as above,
+                              // GBA: L_in
+uniform sampler3D uTauA;      // R..RGBA: suns 1-4's tau_light texels (their grid: the field's or
+                              // twice as fine; linear; depthOf)
+uniform sampler3D uTauB;      // suns 5-8's
 uniform sampler3D uSunT;      // SUN_T: RGBA, suns 1-4's exp(-tau_light) (linear, mipmapped)
 uniform sampler3D uRad;       // RGB: L_ms, the lights' components mixed / uRadScale (linear)
 uniform sampler3D uMaj;       // R: majorant / uMajScale per block (nearest, texelFetch)
@@ -193,7 +193,7 @@ float tauAt(vec3 pc, vec3 lu, float grid) {
   if (tExit > uEdge) return grid;
   float sum = 0.0;
   for (int k = 0; k < 3; k++) {
-    sum += texture(uDensTau, pc + ((float(k) + 0.5) / 3.0) * tExit * lu).r;
+    sum += texture(uDens, pc + ((float(k) + 0.5) / 3.0) * tExit * lu).r;
   }
   return sum * uSigmaScale * tExit / 3.0;
 }
@@ -215,7 +215,7 @@ struct Sample {
 Sample sampleAt(vec3 p) {
   Sample s;
 #if PACKED
-  vec4 v = textureLod(uDensTau, p, uLod);
+  vec4 v = textureLod(uDens, p, uLod);
   s.sigma = v.r * uSigmaScale;
   s.ms = v.gba;
 #if SUN_T
@@ -223,8 +223,7 @@ Sample sampleAt(vec3 p) {
   for (int k = 0; k < SUNS; k++) s.ms += gDirect[k] * sunT[k];
 #endif
 #else
-  vec2 st = texture(uDensTau, p).rg;
-  s.sigma = st.r * uSigmaScale;
+  s.sigma = texture(uDens, p).r * uSigmaScale;
   s.ms = texture(uRad, p).rgb * uRadScale;
   vec3 view = vec3(0.0);
 ${viewLines}
