@@ -107,8 +107,16 @@ class GraphRenderer:
         sensor = sensor_dict(camera, self.volume, spp, seed)
         # Stratified positions in the pixel: the box filter's integral with far less noise at a
         # few samples (a back-lit dense cloud's thin bright rim: 10 % binned relMAE at 16 spp
-        # with independent positions, 6 % stratified)
-        sensor["sampler"] = {"type": "stratified", "sample_count": int(spp), "seed": int(seed)}
+        # with independent positions, 6 % stratified). The field's march has no noise of its
+        # own to hide: its positions are the strata's centres, a regular grid in the pixel (the
+        # bench's thick cloud back-lit, single scattering at 16 spp: 2.61 % binned relMAE
+        # jittered, 1.48 % regular; at 1 spp, the pixel's centre, 23.3 % and 12.9 %)
+        sensor["sampler"] = {
+            "type": "stratified",
+            "sample_count": int(spp),
+            "seed": int(seed),
+            "jitter": estimator != "field",
+        }
         key = (camera.width, camera.height, estimator)
         if key not in self._scenes:
             integrator = self.integrator(estimator)

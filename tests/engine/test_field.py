@@ -217,10 +217,11 @@ def test_field_renders_are_deterministic_and_converged_at_one_sample(sphere):
     c = r.render(scene.camera, spp=1, seed=6, estimator="field")
     aa = r.render(scene.camera, spp=16, seed=7, estimator="field")
     assert a.tobytes() == b.tobytes()
-    # Another seed moves the pixel positions and the march's jitter only: the means agree to
-    # 0.5 %, and one sample per pixel is the 16-sample image up to antialiasing (measured: seeds
-    # 0.1 % apart in the mean; 1 against 16 samples 0.08 % in the mean, 1.3 % binned relMAE).
-    assert abs(c.mean() / a.mean() - 1) < 0.005
+    # The field's pixel positions are the strata's centres, not jittered (render.py): another
+    # seed moves the march's jitter only (measured: 1 spp, seeds 7 and 8 alike; pixel positions
+    # jittered, 5.8 % apart per pixel), and one sample per pixel is the 16-sample image up to
+    # antialiasing (1 against 16 samples 0.08 % in the mean, 1.3 % binned relMAE).
+    assert np.abs(c - a).mean() < 0.005 * a.mean()
     assert abs(a.mean() / aa.mean() - 1) < 0.005
     assert rel_mae(a, aa) < 0.04
 
