@@ -7,8 +7,10 @@ import re
 
 from .page import compare_realtime, errors_shown, frames_drawn, orbit, shot, wait_rest
 
-#: The real-time view against the server's `field` render of the same camera, at rest.
-MAX_FIELD_REL_MAE = 0.01
+#: The real-time view against the server's `field` render of the same camera, at rest: the two
+#: march the same rays (the server's at the pixels' centres too; measured 0.00-0.01 % in every
+#: comparison of the page session, 0.25 % at most while the server's positions were jittered)
+MAX_FIELD_REL_MAE = 0.002
 
 
 def test_compare_realtime_with_server_field(page):
