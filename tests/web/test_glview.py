@@ -191,6 +191,32 @@ def test_a_fine_tau_grid_is_drawn_still_and_moving(page):
     np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-6)
 
 
+def test_a_tau_grid_of_another_resolution_is_refused_in_words(page):
+    """tau_light is at sigma_t's resolution or twice it, and a finer one is read by its
+    tau_power: anything else is refused with a message, not drawn wrong."""
+    refusals = []
+    for factor, power in ((3, FINE_POWER), (2, None)):
+        field = make_field()
+        shape = np.array(field["values"]["tau_light"].shape) * factor
+        put_array(field, "tau_light", np.ones(shape, np.float32), 0.01)
+        field["header"].pop("tau_power")
+        if power:
+            field["header"]["tau_power"] = power
+        refusals.append(
+            page.evaluate(
+                """async (b64) => {
+                const { decodeField } = await import('/js/field.js');
+                try { decodeField(Uint8Array.from(atob(b64), (c) => c.charCodeAt(0)).buffer); }
+                catch (e) { return e.message; }
+                return "";
+              }""",
+                base64.b64encode(encode(field)).decode(),
+            )
+        )
+    assert "neither at sigma_t's resolution nor at twice it" in refusals[0], refusals
+    assert "needs the header's tau_power" in refusals[1], refusals
+
+
 def test_moving_camera_texture_is_close(page):
     """The moving camera's single-fetch march ((sigma_t, L_in) packed in one texture, L_in
     interpolated instead of exp(-tau)) stays within 3 % of the reference."""

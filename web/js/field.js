@@ -105,6 +105,9 @@ export function decodeField(buffer) {
   if (!(maxDtau > 0) || !(edge >= 0)) throw new FieldError("the field's header has no valid max_dtau or edge");
   const tauPower = Number(header.tau_power ?? 0); // (absent: a field of before it, tau interpolated)
   if (!(tauPower >= 0)) throw new FieldError("the field's header has no valid tau_power");
+  if (tauShape.join() !== arrays.sigma_t.shape.join() && !(tauPower > 0)) {
+    throw new FieldError("a tau_light finer than sigma_t needs the header's tau_power");
+  }
   const backgrounds = lights.components.filter((c) => c.background).map((c) => arrays[c.background].shape);
   for (const c of lights.components) {
     if (arrays[c.ms].shape.join() !== arrays.radiance_ms.shape.join()) {
