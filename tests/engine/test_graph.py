@@ -549,7 +549,8 @@ def test_build_memory_does_not_grow_with_the_light_paths(variant):
         peaks.append(tracemalloc.get_traced_memory()[1])
         tracemalloc.stop()
         assert graph.stats["collisions"] > n_paths
-    # 8x the light paths (2 -> 16 chunks); numpy's peak measured 83.9 and 87.3 MiB: the chunks
-    # run ahead of the merges on threads are bounded too (graph.LOCAL_THREADS). The build that
-    # held every collision took 21.3 and 160.3 MiB for 16 k and 131 k light paths.
-    assert peaks[1] < 1.5 * peaks[0], peaks
+    # 8x the light paths (2 -> 16 chunks); numpy's peak measured 77-84 and 84-88 MiB, and in
+    # one run of three 54 and 88 (the small build's two chunks did not overlap): the chunks run
+    # ahead of the merges on threads are bounded too (stages.LOCAL_THREADS). The build that
+    # held every collision grew by 139 MiB (21.3 -> 160.3 MiB for 16 k and 131 k light paths).
+    assert peaks[1] - peaks[0] < 64 * 2**20, peaks
