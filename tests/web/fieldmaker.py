@@ -14,6 +14,7 @@ import math
 import numpy as np
 from scipy.ndimage import map_coordinates
 
+from cloudgraph.field_grid import unit_points
 from cloudgraph.light_depth import FINE_POWER, TAU_POWER, depth_floor
 
 from ..helpers import box_interval, latlong_lookup, pixel_rays
@@ -171,8 +172,7 @@ def light_depth_from_above(field: dict, fine: bool = False) -> None:
     sigma = v["sigma_t"]  # (nz, ny, nx), y up; sigma per world unit
     if fine:
         nz, ny, nx = (2 * n for n in sigma.shape)
-        z, y, x = np.meshgrid(*((np.arange(n) + 0.5) / n for n in (nz, ny, nx)), indexing="ij")
-        sigma = _sample(sigma, np.stack([x.ravel(), y.ravel(), z.ravel()], 1)).reshape(nz, ny, nx)
+        sigma = _sample(sigma, unit_points((nx, ny, nz))).reshape(nz, ny, nx)
         h["tau_power"] = FINE_POWER
     dy = float(np.asarray(h["unit_to_world"])[1, 1]) / sigma.shape[1]
     above = np.cumsum(sigma[:, ::-1, :], axis=1)[:, ::-1, :] * dy - 0.5 * sigma * dy

@@ -9,6 +9,7 @@ import copy
 import numpy as np
 import pytest
 
+from cloudgraph.field_grid import unit_points
 from cloudgraph.light_depth import FINE_POWER, TAU_POWER
 
 from ..helpers import rotated_affine
@@ -185,9 +186,8 @@ def test_a_fine_tau_grid_is_drawn_still_and_moving(page):
         base64.b64encode(encode(field)).decode(),
     )
     nz, ny, nx = field["values"]["sigma_t"].shape
-    z, y, x = np.meshgrid(*((np.arange(n) + 0.5) / n for n in (nz, ny, nx)), indexing="ij")
     q = np.exp(-FINE_POWER * field["values"]["tau_light"])
-    expected = sample(q, np.stack([x.ravel(), y.ravel(), z.ravel()], 1)) ** (1 / FINE_POWER)
+    expected = sample(q, unit_points((nx, ny, nz))) ** (1 / FINE_POWER)
     np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-6)
 
 

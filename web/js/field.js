@@ -92,7 +92,8 @@ export function decodeField(buffer) {
   }
   // tau_light at sigma_t's resolution, or twice it on every axis (cloudgraph/light_depth.py)
   const tauShape = arrays.tau_light.shape;
-  if (tauShape.join() !== arrays.sigma_t.shape.join() && !tauShape.every((n, i) => n === 2 * arrays.sigma_t.shape[i])) {
+  const fineTau = tauShape.join() !== arrays.sigma_t.shape.join();
+  if (fineTau && !tauShape.every((n, i) => n === 2 * arrays.sigma_t.shape[i])) {
     throw new FieldError("tau_light is neither at sigma_t's resolution nor at twice it");
   }
   if (!(Number.isInteger(arrays.majorant.block) && arrays.majorant.block > 0)) {
@@ -105,7 +106,7 @@ export function decodeField(buffer) {
   if (!(maxDtau > 0) || !(edge >= 0)) throw new FieldError("the field's header has no valid max_dtau or edge");
   const tauPower = Number(header.tau_power ?? 0); // (absent: a field of before it, tau interpolated)
   if (!(tauPower >= 0)) throw new FieldError("the field's header has no valid tau_power");
-  if (tauShape.join() !== arrays.sigma_t.shape.join() && !(tauPower > 0)) {
+  if (fineTau && !(tauPower > 0)) {
     throw new FieldError("a tau_light finer than sigma_t needs the header's tau_power");
   }
   const backgrounds = lights.components.filter((c) => c.background).map((c) => arrays[c.background].shape);
