@@ -13,15 +13,9 @@ the density grid, split as the ``gather`` estimator splits it:
   twice as fine where that fits (its points in optically thick voxels marched too), else on
   the field's, fitted there to sub-voxel samples of the march (light_depth.py);
 - everything after the first scattering, from the graph, as ``gather`` computes it at its
-  camera collision: one more flight from the grid point to p'', where albedo L'_search (the
-  ``radiance_gather`` of Eq. 4.25) stands in for the rest; the flight is integrated over
-  :data:`MS_DIRECTIONS` directions in closed form, not sampled. It is smooth, so it lives on a
-  grid :data:`MS_COARSEN` times coarser per axis (more for large media).
-
-An anisotropic phase (docs/method.md, "Anisotropic scattering") bakes each sun's L_ms by the
-walks of ``gather`` (its first scattering events exact) from the grid points, and keeps how it
-depends on the view as coefficients of 14 functions of direction (``ms_shape``,
-:func:`_walk_ms`).
+  camera collision (field_ms.py: one more flight from the grid point, integrated over a fixed
+  set of directions; walks with the view's dependence kept, for an anisotropic phase). It is
+  smooth, so it lives on a grid :data:`MS_COARSEN` times coarser per axis (more for large media).
 
 A camera render is then a deterministic ray march with two texture lookups per step (the
 ``field`` estimator of the graph integrator, and the page's WebGL view), of one file
@@ -38,45 +32,26 @@ import time
 import drjit as dr
 import mitsuba as mi
 import numpy as np
-from scipy.ndimage import gaussian_filter, maximum_filter
+from scipy.ndimage import maximum_filter
 from scipy.spatial import cKDTree
 
 from .chunks import placed
 from .field_file import RadianceField, component_names, pack_array, shape_name
 from .field_grid import FieldPoints, to_world, unit_points
+from .field_ms import MS_STEP, g_texture, gather_ms, smooth, walk_ms, walk_smoothing
 from .light_depth import FINE_POWER, TAU_MAX, TAU_POWER, fine_depth, fine_shape, fit_depth
 from .lights import Lights
 from .mitsuba_scene import envmap_emitter
-from .phase import (
-    SHAPE_DEGREES,
-    SHAPE_NORMS,
-    hg_phase,
-    light_frame,
-    phase_bounces,
-    phase_legendre,
-    phase_walk,
-    sample_phase,
-    shape_basis,
-)
+from .phase import SHAPE_DEGREES, light_frame, phase_bounces
 from .spatial import NodeGrid, node_bins
 from .tracing import (
-    ISOTROPIC_PDF,
     block_majorant,
     cpu_threads,
-    depth_at,
-    depth_texture,
-    envmap_nee,
-    envmap_pdf,
     envmap_seen,
-    exponential_segment,
     from_jit,
-    jit_rng,
-    linear_texture,
-    power_heuristic,
     step_length,
     to_jit,
     towards_light,
-    uniform_sphere,
 )
 
 #: The multiple-scattering grid is this many times coarser per axis than the field grid, or
@@ -85,40 +60,9 @@ from .tracing import (
 #: dense bench cloud's field reads 1.6 % from converged gather, at half of it 2.7 %.
 MS_COARSEN = 1
 MS_MAX_POINTS = 1 << 17
-#: Directions per point of the multiple-scattering gather (8 and 16 measure the same on the
-#: dense bench cloud: the camera march averages neighbouring points' turned sets), and its march
-#: step in field voxels.
-MS_DIRECTIONS = 8
-MS_STEP = 1.0
-#: The gather's steps span at most this optical depth (at the block majorant), and at most
-#: MS_STRIDE times MS_STEP in thin media.
-MS_MAX_DTAU = 0.5
-MS_STRIDE = 4.0
-#: The gather stops where this much light is left, and adds the rest at the last G seen.
-MS_TR_MIN = 1e-2
 #: Multiple-scattering grid points per chunk (times MS_DIRECTIONS rays), and field points per
 #: chunk of the light march: chunks bound the device memory and may run on other workers.
 MS_CHUNK = 1 << 12
-#: The bake's G = albedo L' (what a flight from a grid point reaches) is interpolated between
-#: grid points as G^G_POWER per channel, as tau_light is as T^TAU_POWER: it rises steeply toward
-#: a lit surface, and interpolating G itself read the field's multiple scattering bright back-
-#: lit. thick (blender at optical depth 2 a voxel), all orders, albedo 1, field at 16 spp against
-#: 1024-spp volpath, binned relMAE / mean: back-lit 5.59 % / 1.053 with G, 5.21 % / 1.049 with
-#: G^0.5, 5.09 % / 1.047 with G^0.3 (gather 4.32 % / 1.037); side-lit 2.63, 2.58, 2.56 %.
-G_POWER = 0.3
-#: An anisotropic phase: walks per multiple-scattering point (phase.phase_walk, its first
-#: events exact, from directions half uniform and half from the phase about the light).
-WALKS = 64
-#: ... and the width (standard deviation, in multiple-scattering grid points) of the Gaussian
-#: that smooths the walks' estimates over the grid: 0 up to |g_eff| = 0.5, WALK_SMOOTH from
-#: 0.85 on, linear between. A peaked phase makes the walks heavy-tailed (next-event estimation
-#: weighted by the peak): on the bench sphere at g = 0.85 (64^2, field against volpath at 16,384
-#: spp, binned relMAE / mean) 128 walks unsmoothed read 8.2 % / 1.040 side-lit and 512 walks
-#: 7.5 % / 1.039, 64 walks smoothed over 2 points 7.9 % / 0.985 (back-lit 4.2 % / 0.984). At
-#: g = 0.5 (draft, against 4096 spp) smoothing costs more than it saves: unsmoothed 3.9 %, over
-#: 1 point 5.9 %, 2 points 8.4 % (gather 3.0 %); smoothing the ratio to the one-flight L_ms
-#: instead read 4.8 % there and 7.9 / 5.5 % at g = 0.85.
-WALK_SMOOTH = 2.0
 TAU_CHUNK = 1 << 18
 LOOKUP_CHUNK = 1 << 19
 _CHUNK = {"field_tau": TAU_CHUNK, "field_lookup": LOOKUP_CHUNK, "field_ms": MS_CHUNK}
@@ -378,12 +322,12 @@ def field_chunk(builder, stage: str, index: int, inputs: dict) -> tuple[np.ndarr
         tau = _optical_depth(medium, to_jit(mi.Point3f, q), to_light, step)
         values = np.array(tau, np.float32)[:, None]
     elif "lobes" in inputs:
-        values = _walk_ms(medium, g_texture(inputs["G"]), q, inputs, seed=a)
+        values = walk_ms(medium, g_texture(inputs["G"]), q, inputs, seed=a)
     else:
         sky = float(inputs["sky"][0]) if "sky" in inputs else 0.0
         env = envmap_emitter(str(inputs["envmap"][0])) if "envmap" in inputs else None
         step = float(inputs["step"][0])
-        values = _gather_ms(medium, g_texture(inputs["G"]), q, step, seed=a, sky=sky, env=env)
+        values = gather_ms(medium, g_texture(inputs["G"]), q, step, seed=a, sky=sky, env=env)
     return np.array([a]), values
 
 
@@ -426,26 +370,6 @@ def background_map(path: str, width: int = BACKGROUND_WIDTH) -> np.ndarray:
 def _shape_entry(name: str, lights: Lights, c: int) -> dict:
     """The header's entry of sun c's view terms: their array's name and frame (api.md)."""
     return {"array": name, "frame": light_frame(towards_light(lights.directions[c])).tolist()}
-
-
-def walk_smoothing(phase) -> float:
-    """The Gaussian's width (grid points) that smooths the walks' estimates (WALK_SMOOTH)."""
-    return WALK_SMOOTH * float(np.clip((abs(phase.mean_cosine()) - 0.5) / 0.35, 0.0, 1.0))
-
-
-def smooth(values: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
-    """(..., C) grid values averaged with a Gaussian of ``sigma`` grid points over the points of
-    ``mask`` only (normalised by the mask's own average: the medium's edge blends in no zeros),
-    0 off the mask."""
-    if sigma <= 0:
-        return np.where(mask[..., None], values, 0.0).astype(values.dtype)
-    m = mask.astype(np.float64)
-    weight = gaussian_filter(m, sigma, mode="constant")
-    out = np.zeros_like(values)
-    for i in range(values.shape[-1]):
-        blurred = gaussian_filter(values[..., i] * m, sigma, mode="constant")
-        out[..., i] = np.where(mask, blurred / np.maximum(weight, 1e-12), 0.0)
-    return out
 
 
 def _halve(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -508,145 +432,3 @@ def _optical_depth(medium, p: mi.Point3f, w: mi.Vector3f, step: float) -> mi.Flo
         t += dt
         active &= (t < t_end) & (tau < TAU_MAX)
     return dr.minimum(tau, TAU_MAX)
-
-
-def g_texture(G) -> mi.Texture3f:
-    """The texture of a grid of G = albedo L' (nz, ny, nx, 3): G^G_POWER, trilinear."""
-    return linear_texture(np.maximum(np.asarray(G, np.float32), 0.0) ** np.float32(G_POWER))
-
-
-def g_at(G_tex, pu, mask=True) -> mi.Color3f:
-    """G read from :func:`g_texture` at unit-cube points pu."""
-    g = G_tex.eval(pu, mask)
-    return mi.Color3f(*(dr.power(c, 1.0 / G_POWER) for c in g))
-
-
-def _gather_ms(
-    medium, G_tex, points: np.ndarray, step: float, seed: int, sky: float = 0.0, env=None
-) -> np.ndarray:
-    """(M, 3) L_ms at (M, 3) world points: MS_DIRECTIONS flights each, averaged (see bake_field);
-    ``sky``: the radiance of a uniform sky that flights leaving the box see (0: none); ``env``:
-    an environment map's emitter that they see instead (None: none), and that as many
-    directions drawn from the map see too (tracing.envmap_nee: the two weighted by the power
-    heuristic, so that a small bright spot in the map is found)."""
-    m, k = len(points), MS_DIRECTIONS
-    # Spherical Fibonacci directions, the same set for every point, in a random frame per point
-    i = np.arange(k) + 0.5
-    z = 1.0 - 2.0 * i / k
-    phi = np.pi * (1.0 + 5.0**0.5) * i
-    r = np.sqrt(1.0 - z * z)
-    fib = np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1).astype(np.float32)
-    rng = jit_rng(m, seed, dr.arange(mi.UInt64, m))
-    frame = mi.Frame3f(mi.warp.square_to_uniform_sphere(mi.Point2f(rng.next_float32(), rng.next_float32())))
-    ray = dr.arange(mi.UInt32, m * k)
-    point, j = ray // k, ray % k
-    fr = dr.gather(mi.Frame3f, frame, point)
-    w = dr.gather(mi.Vector3f, to_jit(mi.Vector3f, fib), j)
-    d = fr.to_world(w)
-    o = dr.gather(mi.Point3f, to_jit(mi.Point3f, points), point)
-    L = _march_ms(medium, G_tex, o, d, step, sky, env)
-    if env is not None:  # and as many directions drawn from the map (multiple importance sampling)
-        L += envmap_nee(medium, env, o, jit_rng(m * k, seed + 1, dr.arange(mi.UInt64, m * k)), mi.Bool(True))
-    dr.eval(L)  # one kernel: read channel by channel, each would run the march again
-    out = from_jit(L, np.float64)
-    return out.reshape(m, k, 3).mean(axis=1).astype(np.float32)
-
-
-@dr.syntax
-def _march_ms(medium, G_tex, o: mi.Point3f, d: mi.Vector3f, step: float, sky: float, env) -> mi.Color3f:
-    """int T_r sigma_t G dt along each ray to the box boundary (trapezoid in optical depth, as the
-    field estimator marches), plus T_r to the boundary times ``sky`` or the environment map
-    ``env`` seen along the ray; blocks without density are crossed in one step."""
-    t, t_end = medium.box_interval(o, d)
-
-    def at(t):
-        x = o + t * d
-        return medium.sigma_t(x), g_at(G_tex, medium.world_to_unit @ mi.Point3f(x))
-
-    L = mi.Color3f(0.0)  # Gathered radiance
-    Tr = mi.Float(1.0)  # Transmittance from the point
-    s0, G0 = at(t)
-    active = t < t_end
-    while dr.hint(active, label="ms_gather"):
-        # Steps of at most MS_MAX_DTAU optical depth at the block's majorant, between one and
-        # MS_STRIDE voxels; empty blocks in one step
-        sigma_maj, t_leave = medium.block(o, d, t, active)
-        empty = sigma_maj <= 0.0
-        dt = dr.clip(MS_MAX_DTAU / dr.maximum(sigma_maj, 1e-12), step, MS_STRIDE * step)
-        dt = step_length(empty, t, t_leave, t_end, dt, 1e-3 * step)
-        s1, G1 = at(t + dt)
-        seg_Tr, seg_G = exponential_segment(dr.select(empty, 0.0, 0.5 * (s0 + s1) * dt), G0, G1)
-        L += Tr * seg_G
-        Tr *= seg_Tr
-        t += dt
-        s0, G0 = s1, G1
-        active &= (t < t_end) & (Tr > MS_TR_MIN)
-    # What is left past the cut-off, at the last value seen (0 where the ray left the medium)
-    L += dr.select(t < t_end, Tr, 0.0) * G0
-    if dr.hint(sky > 0.0, mode="scalar"):  # the sky's component only
-        L += dr.select(t < t_end, 0.0, Tr) * sky
-    if dr.hint(env is not None, mode="scalar"):  # an environment map's, against its own samples
-        seen = t >= t_end
-        weight = power_heuristic(ISOTROPIC_PDF, envmap_pdf(env, o, d, seen))
-        L += dr.select(seen, Tr, 0.0) * envmap_seen(env, d) * weight
-    return L
-
-
-def _walk_ms(medium, G_tex, points: np.ndarray, inputs: dict, seed: int) -> np.ndarray:
-    """(M, 3 + len(SHAPE_DEGREES)) a sun's L_ms at (M, 3) world points in an anisotropic
-    medium: what reaches each point after its first scattering, as a function of the camera
-    ray's direction d, projected on orthogonal functions B_i of direction (phase.shape_basis, in
-    the light's frame) and convolved with the phase (Funk-Hecke: degree l scales by g_l,
-    phase.phase_legendre):
-
-        L_ms(x, d) = int p(w . d) L(x, w) dw  ~  c_0(x) + sum_i c_i(x) B_i(d),
-        c_i = g_l(i) int B_i(w) L(x, w) dw / int B_i^2,
-
-    with L(x, w) the radiance that a walk from x along w brings back (phase.phase_walk: the
-    medium's next events exact, the graph's ``G`` after them; x's own event is the camera's).
-    WALKS walks a point, their first directions half uniform and half from the phase about the
-    light (one-sample mixture pdf). Returns c_0 (RGB) and the c_i at unit intensity (the
-    channels' mean over the irradiance's), so that the scene's mix scales them."""
-    m, k = len(points), WALKS
-    lobes = tuple((float(w), float(g)) for w, g in np.asarray(inputs["lobes"], float))
-    to_light = tuple(float(c) for c in inputs["to_light"])
-    E = np.asarray(inputs["irradiance"], float)
-    albedo = mi.Color3f(*(float(c) for c in inputs["albedo"]))
-    n = m * k
-    rng = jit_rng(n, seed, dr.arange(mi.UInt64, n))
-    o = dr.gather(mi.Point3f, to_jit(mi.Point3f, points), dr.arange(mi.UInt32, n) // k)
-    s = mi.Vector3f(*to_light)
-    uniform = rng.next_float32() < 0.5
-    w = dr.select(uniform, uniform_sphere(rng), sample_phase(lobes, s, rng))
-    pdf = 0.5 / (4.0 * dr.pi) + 0.5 * hg_phase(lobes, dr.dot(w, s))
-
-    def tail(q, mask):
-        return g_at(G_tex, medium.world_to_unit @ mi.Point3f(q), mask)
-
-    def nothing(mask, w):  # a sun's component: nothing behind the medium
-        return mi.Color3f(0.0)
-
-    power = float(inputs["tau_power"][0])
-    tau = depth_texture(inputs["tau"], power)
-
-    def sun_tr(i, p, mask):  # the bake's own light march, interpolated as the camera's march does
-        return dr.exp(-depth_at(tau, medium.world_to_unit @ mi.Point3f(p), mask, power))
-
-    suns = [(to_light, mi.Color3f(*(float(c) for c in E)))]
-    bounces = int(inputs["bounces"][0])
-    tail = tail if inputs["tail"][0] else None
-    L = phase_walk(medium, lobes, suns, albedo, nothing, tail, o, w, rng, mi.Bool(True), bounces, sun_tr)
-    weight = L / pdf
-    dr.eval(weight, w)  # the walks once: each sum below reads them
-    # Projected per point: the sums over a point's k consecutive walks
-    frame = light_frame(to_light)
-    local = [dr.dot(w, mi.Vector3f(*(float(c) for c in e))) for e in frame]
-    inv = np.where(E > 0, 1.0 / np.where(E > 0, E, 1.0), 0.0) / 3.0
-    unit = weight.x * float(inv[0]) + weight.y * float(inv[1]) + weight.z * float(inv[2])
-    sums = [dr.block_sum(v, k) for v in (weight.x, weight.y, weight.z)]
-    sums += [dr.block_sum(unit * b, k) for b in shape_basis(*local)]
-    dr.eval(sums)
-    S = np.stack([np.array(v, np.float64) for v in sums], axis=1) / k  # (M, 3 + len(B))
-    degrees = np.array((0, 0, 0, *SHAPE_DEGREES))
-    scale = phase_legendre(lobes, max(degrees))[degrees] / np.array((4 * np.pi,) * 3 + SHAPE_NORMS)
-    return (S * scale[None, :]).astype(np.float32)

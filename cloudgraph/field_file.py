@@ -24,7 +24,7 @@ A field of an anisotropic phase also holds, per directional light, ``ms_shape`` 
 ``ms_shape``, or the component's ``shape``: its array ``ms_shape_K`` and its frame):
 (mz', my', mx', 14) coefficients c_i of the functions of direction of phase.shape_basis at unit
 intensity, at half radiance_ms's resolution; radiance_ms + E sum_i c_i B_i(d), clamped at 0, is
-L_ms seen along a ray of direction d (field.py, ``_walk_ms``; api.md).
+L_ms seen along a ray of direction d (field_ms.py, ``walk_ms``; api.md).
 """
 
 from __future__ import annotations

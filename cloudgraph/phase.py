@@ -6,7 +6,7 @@ on the phase is taken exactly where it matters most: :func:`phase_walk` follows 
 its first scattering events as volpath does, then the graph's radiance stands in for the rest.
 ``gather`` starts it at the camera's first collision (integrators/graph.py); the field's bake
 starts it at grid points and keeps the result's dependence on direction as coefficients of
-:func:`shape_basis` (field.py). Both read :func:`hg_phase`, :func:`sample_phase` and
+:func:`shape_basis` (field_ms.py). Both read :func:`hg_phase`, :func:`sample_phase` and
 :func:`phase_bounces`.
 """
 

@@ -198,7 +198,7 @@ def test_the_bake_reads_g_between_grid_points_as_its_power(variant):
     # read it as G^G_POWER interpolated (exact at the points), not as G
     import mitsuba as mi
 
-    from cloudgraph.field import G_POWER, g_at, g_texture
+    from cloudgraph.field_ms import G_POWER, g_at, g_texture
 
     G = np.array([[[[1.0, 4.0, 0.0], [9.0, 1.0, 2.0]]]], np.float32)  # (1, 1, 2, 3): two texels in x
     x = np.array([0.25, 0.5, 0.625, 0.75])  # texel centres at 0.25 and 0.75
