@@ -60,7 +60,7 @@ from .tracing import (
 #: dense bench cloud's field reads 1.6 % from converged gather, at half of it 2.7 %.
 MS_COARSEN = 1
 MS_MAX_POINTS = 1 << 17
-#: Multiple-scattering grid points per chunk (times MS_DIRECTIONS rays), and field points per
+#: Multiple-scattering grid points per chunk (times field_ms.MS_DIRECTIONS rays), and field points per
 #: chunk of the light march: chunks bound the device memory and may run on other workers.
 MS_CHUNK = 1 << 12
 TAU_CHUNK = 1 << 18
