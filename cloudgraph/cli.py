@@ -215,7 +215,12 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="the field's error by part (single scattering, all orders) beside gather and volpath",
     )
-    b.add_argument("--ref-spp", type=int, default=4096, help="--parts: volpath reference samples")
+    b.add_argument(
+        "--ref-spp",
+        type=int,
+        default=4096,
+        help="--parts: volpath reference samples (0: field against gather only)",
+    )
     b.add_argument(
         "--part",
         action="append",

@@ -15,7 +15,9 @@ the density grid, split as the ``gather`` estimator splits it:
 - everything after the first scattering, from the graph, as ``gather`` computes it at its
   camera collision (field_ms.py: one more flight from the grid point, integrated over a fixed
   set of directions; walks with the view's dependence kept, for an anisotropic phase). It is
-  smooth, so it lives on a grid :data:`MS_COARSEN` times coarser per axis (more for large media).
+  smooth, so it lives on a grid :data:`MS_COARSEN` times coarser per axis (more for large media),
+  each sun's over that sun's light factor exp(-min(P tau_light, range)) (field_ms.MS_LIGHT_POWER:
+  below a lit surface it falls within a voxel as the light does), multiplied back where read.
 
 A camera render is then a deterministic ray march with two texture lookups per step (the
 ``field`` estimator of the graph integrator, and the page's WebGL view), of one file
@@ -38,7 +40,17 @@ from scipy.spatial import cKDTree
 from .chunks import placed
 from .field_file import RadianceField, component_names, pack_array, shape_name
 from .field_grid import FieldPoints, to_world, unit_points
-from .field_ms import MS_STEP, g_texture, gather_ms, smooth, walk_ms, walk_smoothing
+from .field_ms import (
+    MS_LIGHT_RANGE,
+    MS_STEP,
+    g_texture,
+    gather_ms,
+    light_factor,
+    ms_light_power,
+    smooth,
+    walk_ms,
+    walk_smoothing,
+)
 from .light_depth import FINE_POWER, TAU_MAX, TAU_POWER, fine_depth, fine_shape, fit_depth
 from .lights import Lights
 from .mitsuba_scene import envmap_emitter
@@ -47,6 +59,8 @@ from .spatial import NodeGrid, node_bins
 from .tracing import (
     block_majorant,
     cpu_threads,
+    depth_at,
+    depth_texture,
     envmap_seen,
     from_jit,
     step_length,
@@ -247,6 +261,17 @@ def bake_field(
         ms[c] = smooth(ms[c], mask, walk_smoothing(phase))
     shapes = {c: _halve(ms[c][..., 3:], mask) for c in walked}  # (smooth: half the resolution)
     ms = [np.ascontiguousarray(m[..., :3]) for m in ms]
+    # each sun's L_ms over its light factor, as the readers read its tau (field_ms.MS_LIGHT_POWER):
+    # they multiply it back where they read L_ms
+    ms_light = None
+    if taus:
+        ms_light = {"power": ms_light_power(albedo).tolist(), "range": MS_LIGHT_RANGE}
+        pu = to_jit(mi.Point3f, unit_points(ms_shape).astype(np.float32))
+        for c in range(len(ms)):
+            if lights.kind(c) == "directional":  # (a sun's component c is directional light c)
+                tau = depth_at(depth_texture(taus[c], tau_power), pu, mi.Bool(True), tau_power)
+                tau = np.array(tau, np.float64).reshape(ms_shape[::-1])
+                ms[c] = (ms[c] / light_factor(tau, ms_light["power"], MS_LIGHT_RANGE)).astype(np.float32)
     progress("field", 1.0)
     t_ms += time.perf_counter() - t0
 
@@ -261,6 +286,8 @@ def bake_field(
         "edge": EDGE_VOXELS * voxel,
         "tau_power": tau_power,
     }
+    if ms_light is not None:
+        meta["ms_light"] = ms_light
     extra = {}
     if not lights.basis:  # a v1 light
         direction = -towards_light(lights.directions[0])

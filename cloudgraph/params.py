@@ -121,4 +121,4 @@ def build_params(volume: Volume, density_scale: float, quality: str = "default",
 
 #: Lighting parameters that enter the radiance key, with the version of the field's bake (its
 #: file is kept under the radiance key: a new bake must not find an old one's).
-LIGHTING = {"samples": 16, "tol": 1e-5, "transport": "krylov", "field": 4}
+LIGHTING = {"samples": 16, "tol": 1e-5, "transport": "krylov", "field": 5}

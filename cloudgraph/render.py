@@ -92,7 +92,8 @@ class GraphRenderer:
         for estimator, integrator in self._integrators.items():
             integrator.set_intensities(lights)
             if estimator == "field":
-                integrator.field.ms = linear_texture(integrator.field.mixed_ms(self.cache.field, lights))
+                rest = integrator.field.mixed_ms(self.cache.field, lights)  # (the suns' are opaque)
+                integrator.field.ms = None if rest is None else linear_texture(rest)
             else:
                 integrator.grid.radiance = to_jit(mi.Color3f, self._node_radiance(estimator))
 

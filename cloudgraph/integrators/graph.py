@@ -91,11 +91,15 @@ class FieldTextures:
 
     Attributes:
         tau: optical depth to each directional light, 1 channel each (a list, in the lights'
-            order), as q = exp(-tau_power tau) (light_depth.py; tau itself where 0); ms:
-            radiance after the first scattering, 3 channels (the light components mixed:
-            :meth:`mixed_ms`); shape: per directional light, how its L_ms depends on
-            the view (an anisotropic phase; None without: phase.shape_basis), frame: the basis's
-            frame (3, 3); all trilinear, clamped, over the unit cube.
+            order), as q = exp(-tau_power tau) (light_depth.py; tau itself where 0); sun_ms:
+            per directional light its radiance after the first scattering, 3 channels, over its
+            light factor exp(-min(P tau_light, range)) (the header's ``ms_light``, ms_light's
+            (P (3,), range); P 0 in a file of before it), at unit intensity where ``unit`` (a
+            v1.1 field: the march multiplies the sun's irradiance in), else at its own; ms: the
+            other components' (sky, maps) mixed (:meth:`mixed_ms`; None without); shape: per
+            directional light, how its L_ms depends on the view (an anisotropic phase; None
+            without: phase.shape_basis), frame: the basis's frame (3, 3); all trilinear,
+            clamped, over the unit cube.
         step: march step, world units; max_dtau: a step's optical depth at most (at its block's
             majorant); edge: within this of where the light enters the box, single scattering
             integrates sigma_t to it (world units; field.py's header, read by the page too).
@@ -104,6 +108,9 @@ class FieldTextures:
 
     tau: object
     tau_power: float
+    sun_ms: tuple
+    unit: bool
+    ms_light: tuple
     ms: object
     shape: tuple
     frame: tuple
@@ -113,12 +120,15 @@ class FieldTextures:
     max_steps: int
 
     @staticmethod
-    def mixed_ms(field, lights) -> np.ndarray:
-        """The field's radiance after the first scattering in the scene's light: a v1 field's,
-        or its components' mixed by the scene's intensities (lights.py)."""
-        if "lights" not in field.meta:
-            return field.radiance_ms
-        return lights.mixed(np.stack([field.array(c["ms"]) for c in field.meta["lights"]]))
+    def mixed_ms(field, lights) -> np.ndarray | None:
+        """The radiance after the first scattering of a v1.1 field's components other than its
+        directional lights (sky, maps), mixed by the scene's intensities (lights.py); None
+        without any."""
+        rest = [c for c, e in enumerate(field.meta.get("lights", ())) if e["type"] != "directional"]
+        if not rest:
+            return None
+        comps = field.meta["lights"]
+        return sum(lights.mix[c].astype(np.float32) * field.array(comps[c]["ms"]) for c in rest)
 
     @classmethod
     def from_field(cls, field, lights) -> FieldTextures:
@@ -126,16 +136,22 @@ class FieldTextures:
         power = float(field.meta.get("tau_power", 0.0))  # (0: a file of before it, tau interpolated)
         suns = [c for c in field.meta["lights"] if "tau" in c] if "lights" in field.meta else None
         taus = [field.array(c["tau"]) for c in suns] if suns is not None else [field.tau_light]
+        sun_ms = [field.array(c["ms"]) for c in suns] if suns is not None else [field.radiance_ms]
         shapes = [c.get("shape") for c in suns] if suns is not None else [field.meta.get("ms_shape")]
         arrays = [linear_texture(field.array(sh["array"])) if sh else None for sh in shapes]
         diag = float(np.linalg.norm(np.subtract(*field.meta["world_bbox"][::-1])))
         blocks = sum(-(-n // BLOCK) for n in field.sigma_t.shape)
+        ml = field.meta.get("ms_light", {"power": (0.0, 0.0, 0.0), "range": 0.0})
+        rest = cls.mixed_ms(field, lights)
         # the longest march: every segment at most max_dtau of the medium's majorant
         dense = float(field.majorant.max(initial=0.0)) * diag / max_dtau
         return cls(
             tau=tuple(depth_texture(t, power) for t in taus),
             tau_power=power,
-            ms=linear_texture(cls.mixed_ms(field, lights)),
+            sun_ms=tuple(linear_texture(a) for a in sun_ms),
+            unit=suns is not None,
+            ms_light=(tuple(map(float, ml["power"])), float(ml["range"])),
+            ms=None if rest is None else linear_texture(rest),
             shape=tuple(arrays),
             frame=tuple(np.asarray(sh["frame"], float) if sh else None for sh in shapes),
             step=step,
@@ -326,8 +342,18 @@ class GraphIntegrator(mi.SamplingIntegrator):
         (:meth:`_views`) where the field keeps how its L_ms depends on the view, else None."""
         f = self.field
         pu = self.medium.world_to_unit @ mi.Point3f(p)
-        ms = f.ms.eval(pu, active)
-        L_ms = mi.Color3f(ms[0], ms[1], ms[2])
+        taus = [self._tau_light(k, pu, active) for k in range(len(self.to_light))]
+        L_ms = mi.Color3f(0.0)
+        if f.ms is not None:  # the sky's and the maps'
+            ms = f.ms.eval(pu, active)
+            L_ms += mi.Color3f(ms[0], ms[1], ms[2])
+        power, limit = f.ms_light
+        for k, tex in enumerate(f.sun_ms):  # each sun's, times its light factor (unrolled)
+            ms = tex.eval(pu, active)
+            sun = mi.Color3f(ms[0], ms[1], ms[2]) * (self.irradiance[k] if f.unit else 1.0)
+            if any(power):
+                sun *= dr.exp(-dr.minimum(mi.Color3f(*power) * taus[k], limit))
+            L_ms += sun
         for tex, view in zip(f.shape, views, strict=True):  # the suns, unrolled
             if view is not None:
                 c = tex.eval(pu, active)
@@ -335,7 +361,6 @@ class GraphIntegrator(mi.SamplingIntegrator):
         if any(view is not None for view in views):  # (the series can ring below 0)
             L_ms = dr.maximum(L_ms, 0.0)
         sigma_t = self.medium.texture.eval(pu, active)[0] * self.medium.scale
-        taus = [self._tau_light(k, pu, active) for k in range(len(self.to_light))]
         return sigma_t, taus, L_ms
 
     def _views(self, d):

@@ -169,6 +169,27 @@ def test_the_rim_of_a_back_lit_dense_cloud_reads_the_light_as_gather_does(
     assert rel_mae(field, gather) < mae
 
 
+def test_a_side_lit_dense_cloud_s_multiple_scattering_reads_as_gather_does(variant, tmp_path):
+    # In a dense cloud L_ms falls within a fraction of a voxel below a lit surface, which the
+    # L_ms grid's linear interpolation reads dark; the field keeps L_ms over a factor of the
+    # light, exp(-min(P tau_light, range)), and multiplies it back where it reads (field_ms.py).
+    from cloudgraph.procedural import noise_volume
+
+    volume = noise_volume(32, seed=11)
+    side = np.cross(LIGHT, [0.0, 0.0, 1.0])
+    scale = 4.0 / float(volume.density.max() * volume.voxel_size.max())  # optical depth 4 a voxel
+    scene = medium_scene(volume, scale, albedo=0.8, eye_dir=side, size=32)
+    cache = precompute(scene, volume, "draft", CacheStore(tmp_path))
+    assert cache.field.meta["ms_light"]["power"] == pytest.approx([0.45] * 3, abs=0.01)
+    r = renderer(cache, volume, scene)
+    field = r.render(scene.camera, spp=16, seed=1, estimator="field").astype(np.float64)
+    gather = r.render(scene.camera, spp=1024, seed=1, estimator="gather").astype(np.float64)
+    # measured (32^2, draft), field / gather in the mean and binned relMAE: 0.994, 1.01 %;
+    # without the factor 0.984, 1.90 %; gather's own binned noise 0.65 %
+    assert abs(field.mean() / gather.mean() - 1) < 0.01
+    assert rel_mae(field, gather) < 0.014
+
+
 def test_the_fine_tau_grid_holds_the_samples_and_reads_only_baked_points():
     # light_depth.fine_depth: the sub-voxel samples are the fine grid's points where they are;
     # elsewhere the field grid's baked points alone are interpolated (unbaked ones hold junk)

@@ -319,16 +319,19 @@ def reference_render(
             for w, c in zip(weights, h["lights"], strict=True)
             if c["type"] == "envmap"
         ]
-        rad_grid = sum(w * v[c["ms"]] for w, c in zip(weights, h["lights"], strict=True))
+        apart = ["ms_light" in h and c["type"] == "directional" for c in h["lights"]]
+        rad_grid = sum(w * v[c["ms"]] for w, c, a in zip(weights, h["lights"], apart, strict=True) if not a)
+        sun_grids = [w * v[c["ms"]] for w, c, a in zip(weights, h["lights"], apart, strict=True) if a]
         if not any(c["type"] == "sky" for c in h["lights"]):
             sky = np.zeros(3)
     else:
         E, sky, rad_grid, maps = (
             [np.asarray(h["light"]["irradiance"], float)],
             np.zeros(3),
-            v["radiance_ms"],
+            0.0 if "ms_light" in h else v["radiance_ms"],
             [],
         )
+        sun_grids = [v["radiance_ms"]] if "ms_light" in h else []
     m = np.asarray(h["unit_to_world"], float)
     inv = np.linalg.inv(m)
     d = pixel_rays(
@@ -357,7 +360,11 @@ def reference_render(
         t = t0[idx] + (k + 0.5) * dt[idx]
         p = o_u + t[:, None] * d_u[idx]
         s = _sample(v["sigma_t"], p)
-        rad = _sample(rad_grid, p)
+        rad = _sample(rad_grid, p) if np.ndim(rad_grid) else np.zeros((len(p), 3))
+        for sun, grid in zip(suns[: len(sun_grids)], sun_grids, strict=True):  # (ms_light) times it
+            tau = _tau_light(h, v, p, sun)[:, None]
+            power, limit = np.asarray(h["ms_light"]["power"]), h["ms_light"]["range"]
+            rad = rad + _sample(grid, p) * np.exp(-np.minimum(tau * power, limit))
         if any(b is not None for b in bases):  # per sun E sum_i c_i B_i(d), L_ms clamped at 0
             for sun, basis, e in zip(suns, bases, direct, strict=True):
                 if basis is not None:

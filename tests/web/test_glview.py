@@ -270,3 +270,33 @@ def test_quality_ladder_and_controller(page):
     # a 200 ms frame: the cost that fits 16 ms is about 1/12 of it
     assert r["slow"]["cost"] <= r["first"]["cost"] * 1.15 * 16.7 / 200 * 1.01
     assert r["ups"][-1] == r["levels"][0]["cost"], "frames at the display's rate did not creep up"
+
+
+def test_ms_light_factor_is_multiplied_back_as_the_header_says(page):
+    """A field's L_ms held over the first sun's light factor (header ``ms_light``: field.py)
+    is drawn times exp(-min(P tau_light, range)) per channel, at rest and moving, as the numpy
+    march reads it; the image without the factor differs, and a bad ms_light is refused."""
+    field = make_field()
+    light_depth_from_above(field, fine=True)
+    field["header"]["ms_light"] = {"power": [0.3, 0.6, 1.2], "range": 1.25}
+    lo, hi = (np.asarray(v) for v in field["header"]["world_bbox"])
+    c, r = (lo + hi) / 2, np.linalg.norm(hi - lo)
+    cam = camera(c + r * np.array([0.3, 0.4, 1.2]), c)
+    ref = reference_render(field, cam, exposure=1.0)
+    plain = copy.deepcopy(field)
+    del plain["header"]["ms_light"]
+    assert rel_mae(reference_render(plain, cam, exposure=1.0), ref) > 0.05  # the factor shows
+    for fast, tol in ((False, 0.025), (True, 0.03)):
+        (img,) = render(page, field, [cam], exposure=1.0, fast=fast)
+        assert rel_mae(img, ref) < tol, f"fast={fast}"
+    field["header"]["ms_light"] = {"power": [0.3, 0.6], "range": 1.25}
+    message = page.evaluate(
+        """async (b64) => {
+        const { decodeField } = await import('/js/field.js');
+        try { decodeField(Uint8Array.from(atob(b64), (c) => c.charCodeAt(0)).buffer); }
+        catch (e) { return e.message; }
+        return "";
+      }""",
+        base64.b64encode(encode(field)).decode(),
+    )
+    assert "ms_light" in message, message

@@ -35,11 +35,14 @@ def cameras(field):
     ]
 
 
-@pytest.mark.parametrize("suns, sky", [(3, True), (8, False)])  # (8 lights at most)
+# (8 lights at most; ms_light: each sun's L_ms over its light factor, a texture of its own)
+@pytest.mark.parametrize("suns, sky, ms_light", [(3, True, False), (3, True, True), (8, False, True)])
 @pytest.mark.parametrize("fast", [False, True])
-def test_the_page_draws_several_suns_and_a_sky_as_the_numpy_march(page, suns, sky, fast):  # noqa: F811
+def test_the_page_draws_several_suns_and_a_sky_as_the_numpy_march(page, suns, sky, ms_light, fast):  # noqa: F811
     field = make_field()
     add_lights(field, DIRECTIONS[:suns], sky=sky)
+    if ms_light:
+        field["header"]["ms_light"] = {"power": [0.1, 0.45, 0.88], "range": 1.25}  # albedo 1, 0.8, 0
     rng = np.random.default_rng(suns)
     mix = {"suns": rng.uniform(0.5, 3.0, (suns, 3)).round(3).tolist(), "sky": [0.2, 0.3, 0.5]}
     cams = cameras(field)
@@ -52,7 +55,11 @@ def test_the_page_draws_several_suns_and_a_sky_as_the_numpy_march(page, suns, sk
     ):
         ref = reference_render(field, cam, mix=mix)
         assert ref.mean() > 5, "the reference image is black: a useless test"
-        assert rel_mae(img, ref) < (0.03 if fast else 0.02)
+        # the moving texture takes each sun's light factor at the voxels' centres, where this
+        # synthetic field's suns' tau steps by several optical depths at the body's edge:
+        # measured 1.1-1.6 % without ms_light, 2.0-2.3 % (3 suns) and 2.9-3.4 % (8) with it
+        moving = 0.04 if ms_light and suns > 3 else 0.03
+        assert rel_mae(img, ref) < (moving if fast else 0.02)
         assert rel_mae(one, ref) > 0.15, "the other lights changed little: a useless test"
 
 

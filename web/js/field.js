@@ -109,6 +109,12 @@ export function decodeField(buffer) {
   if (fineTau && !(tauPower > 0)) {
     throw new FieldError("a tau_light finer than sigma_t needs the header's tau_power");
   }
+  // L_ms held over the first sun's light factor exp(-min(P tau, range)) (absent: L_ms itself)
+  const ml = header.ms_light;
+  const msLight = ml ? { power: vec(ml.power, 3, "ms_light.power"), range: Number(ml.range) } : null;
+  if (msLight && (!lights.suns.length || !(msLight.range >= 0) || !msLight.power.every((p) => p >= 0))) {
+    throw new FieldError("the field's header has no valid ms_light (power >= 0, range >= 0, a sun)");
+  }
   const backgrounds = lights.components.filter((c) => c.background).map((c) => arrays[c.background].shape);
   for (const c of lights.components) {
     if (arrays[c.ms].shape.join() !== arrays.radiance_ms.shape.join()) {
@@ -146,6 +152,7 @@ export function decodeField(buffer) {
     maxDtau,
     edge,
     tauPower,
+    msLight,
     arrays,
     bytes: buffer.byteLength,
   };

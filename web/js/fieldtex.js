@@ -150,8 +150,10 @@ export const MOVING_PHASE_SUNS = 4;
 
 /**
  * The moving camera's texture: per density voxel (sigma_t / scale, L_in r, g, b) with
- * L_in = sum over suns E exp(-tau_light) / 4pi + L_ms (resampled to the density grid).
- * ``mix`` (glview.js): { direct: per sun E / 4pi, ms: mixedRadiance's }. With ``phase`` (an
+ * L_in = sum over suns E exp(-tau_light) / 4pi + L_ms (resampled to the density grid; with
+ * ms_light each sun's apart, times its light factor at the voxel).
+ * ``mix`` (glview.js): { direct: per sun E / 4pi, ms: mixedRadiance's, sunMs: per sun its own
+ * (with ms_light; else empty) }. With ``phase`` (an
  * anisotropic field, at most MOVING_PHASE_SUNS suns) L_in is L_ms alone, whose view terms it
  * leaves out, and ``sunT`` holds each sun's exp(-tau_light) per voxel (RGBA): the shader weights
  * them by E p per ray. Returns { packed, sunT (or null) }, float32 RGBA.
@@ -161,8 +163,10 @@ export function packedField(field, mix, { phase = false } = {}) {
   const [nz, ny, nx] = sigma_t.shape;
   const [mz, my, mx] = radiance_ms.shape;
   const taus = field.suns.map((s) => voxelTransmittance(field.arrays[s.tau], field.tauPower, sigma_t.shape));
-  const rad = mix.ms.data;
-  const [sr, sg, sb] = mix.ms.scale;
+  // what is resampled: the mixed L_ms, and each sun's apart (mix.sunMs, with ms_light) with its
+  // light factor at the voxel's transmittance
+  const sources = [{ ms: mix.ms, sun: -1 }, ...(mix.sunMs || []).map((ms, sun) => ({ ms, sun }))];
+  const { power, range } = field.msLight || { power: [0, 0, 0], range: 0 };
   const X = axisWeights(nx, mx);
   const Y = axisWeights(ny, my);
   const Z = axisWeights(nz, mz);
@@ -184,15 +188,25 @@ export function packedField(field, mix, { phase = false } = {}) {
         const wx = X.w[i];
         const a = X.i0[i];
         const b = X.i1[i];
-        for (let ch = 0; ch < 3; ch++) {
-          const at = (row, col) => rad[3 * (row + col) + ch];
-          const y0 = (1 - wz) * ((1 - wx) * at(r00, a) + wx * at(r00, b)) + wz * ((1 - wx) * at(r10, a) + wx * at(r10, b));
-          const y1 = (1 - wz) * ((1 - wx) * at(r01, a) + wx * at(r01, b)) + wz * ((1 - wx) * at(r11, a) + wx * at(r11, b));
-          c[ch] = (1 - wy) * y0 + wy * y1;
+        let er = 0;
+        let eg = 0;
+        let eb = 0;
+        for (const { ms, sun } of sources) {
+          const rad = ms.data;
+          for (let ch = 0; ch < 3; ch++) {
+            const at = (row, col) => rad[3 * (row + col) + ch];
+            const y0 = (1 - wz) * ((1 - wx) * at(r00, a) + wx * at(r00, b)) + wz * ((1 - wx) * at(r10, a) + wx * at(r10, b));
+            const y1 = (1 - wz) * ((1 - wx) * at(r01, a) + wx * at(r01, b)) + wz * ((1 - wx) * at(r11, a) + wx * at(r11, b));
+            c[ch] = ms.scale[ch] * ((1 - wy) * y0 + wy * y1);
+          }
+          if (sun >= 0) {
+            const tau = -Math.log(Math.max(taus[sun][v], 1e-30));
+            for (let ch = 0; ch < 3; ch++) c[ch] *= Math.exp(-Math.min(power[ch] * tau, range));
+          }
+          er += c[0];
+          eg += c[1];
+          eb += c[2];
         }
-        let er = sr * c[0];
-        let eg = sg * c[1];
-        let eb = sb * c[2];
         for (let s = 0; s < taus.length; s++) {
           const direct = taus[s][v];
           if (sunT) {

@@ -67,14 +67,24 @@ export function lightsOf(field, mix) {
   return { suns: sunE, components, sky: field.components.some((c) => c.type === "sky") ? sky : [0, 0, 0] };
 }
 
-/** The shader's uniforms of a field in a light (lightsOf) and its mixed L_ms (fieldtex.js). */
+/** The shader's uniforms of a field in a light (lightsOf) and its mixed L_ms (fieldtex.js):
+ * with ms_light each sun's L_ms apart (sunMs, over its light factor), the others' mixed (ms). */
 function mixOf(field, mix) {
   const lights = lightsOf(field, mix);
-  const ms = mixedRadiance(field, lights.components);
+  const apart = field.components.map((c) => !!field.msLight && c.type === "directional");
+  const only = (keep) => lights.components.map((e, k) => (keep(k) ? e : [0, 0, 0]));
+  const ms = mixedRadiance(field, only((k) => !apart[k]));
+  const sunMs = apart.flatMap((a, k) => (a ? [mixedRadiance(field, only((j) => j === k))] : []));
   const env = mixedBackground(field, lights.components);
   const direct = lights.suns.map((E) => E.map((e) => e / (4 * Math.PI)));
-  const uniforms = { direct, radScale: ms.scale, background: lights.sky, envScale: env ? env.scale : [0, 0, 0] };
-  return { ms, env, direct, uniforms };
+  const uniforms = {
+    direct,
+    radScale: ms.scale,
+    sunRadScale: sunMs.map((s) => s.scale),
+    background: lights.sky,
+    envScale: env ? env.scale : [0, 0, 0],
+  };
+  return { ms, sunMs, env, direct, uniforms };
 }
 
 export class GLView {
@@ -138,7 +148,7 @@ export class GLView {
       }
     }
     const shaped = shapedSuns(field).length;
-    const units = textureUnits(field.suns.length, shaped) + (hasEnv(field) ? 1 : 0);
+    const units = textureUnits(field.suns.length, shaped, !!field.msLight) + (hasEnv(field) ? 1 : 0);
     const have = this.gl.getParameter(this.gl.MAX_TEXTURE_IMAGE_UNITS);
     if (units > have) {
       return `its ${shaped} lights' view terms need ${units} texture units and this device has ${have}: render it on the server`;
@@ -150,7 +160,7 @@ export class GLView {
 
   /**
    * GPU bytes of a field's textures: R16F density, 16F textures of the suns' tau (a channel
-   * each, at the tau grid's resolution), RGBA16F-padded radiance, R16F majorant, the RGBA16F (sigma_t, L_in) texture of the
+   * each, at the tau grid's resolution), RGBA16F-padded radiance (with ms_light each sun's apart too), R16F majorant, the RGBA16F (sigma_t, L_in) texture of the
    * moving camera with its mipmaps (and of an anisotropic field its suns' transmittance), four RGBA16F textures of view terms a shaped sun, and an
    * RGBA16F-padded lat-long background of the environment maps.
    */
@@ -163,7 +173,8 @@ export class GLView {
     const shape = shapedSuns(field).reduce((n, k) => n + 8 * Math.ceil(SHAPE_TERMS / 4) * count(field.arrays[field.suns[k].shape.array]), 0);
     const env = field.components.find((c) => c.background);
     const background = env ? 8 * field.arrays[env.background].shape[0] * field.arrays[env.background].shape[1] : 0;
-    return Math.round(density * count(sigma_t) + taus + 8 * count(radiance_ms) + 2 * count(majorant) + shape + background);
+    const rads = 1 + (field.msLight ? field.suns.length : 0); // the others' L_ms, each sun's apart
+    return Math.round(density * count(sigma_t) + taus + 8 * rads * count(radiance_ms) + 2 * count(majorant) + shape + background);
   }
 
   /**
@@ -176,11 +187,11 @@ export class GLView {
     if (!this.unitField || !this.textures) return;
     const m = mixOf(this.unitField, mix);
     Object.assign(this.field, m.uniforms);
-    const rad = this.makeTexture(this.unitField.arrays.radiance_ms, this.gl.RGB16F, this.gl.RGB, m.ms.data, this.gl.LINEAR, this.gl.FLOAT);
+    const rads = this.makeRadiance(this.unitField, m);
     const moving = this.makeMoving(this.unitField, m);
     const env = m.env && this.makeBackground(m.env);
-    for (const name of ["rad", "packed", "sunT", "env"]) if (this.textures[name]) this.gl.deleteTexture(this.textures[name]);
-    Object.assign(this.textures, { rad, ...moving, env });
+    for (const name of [...Object.keys(rads), "packed", "sunT", "env"]) if (this.textures[name]) this.gl.deleteTexture(this.textures[name]);
+    Object.assign(this.textures, { ...rads, ...moving, env });
   }
 
   /** The environment maps' lat-long background (mixedBackground's): RGB16F, wrapping around
@@ -212,6 +223,13 @@ export class GLView {
       gl.texParameteri(gl.TEXTURE_3D, w, gl.CLAMP_TO_EDGE);
     }
     return t;
+  }
+
+  /** The L_ms textures of a field in a light (mixOf's): { rad, sunRad0, ... }, RGB16F. */
+  makeRadiance(field, m) {
+    const gl = this.gl;
+    const make = (ms) => this.makeTexture(field.arrays.radiance_ms, gl.RGB16F, gl.RGB, ms.data, gl.LINEAR, gl.FLOAT);
+    return Object.fromEntries([["rad", make(m.ms)], ...m.sunMs.map((ms, k) => [`sunRad${k}`, make(ms)])]);
   }
 
   /** The moving camera's textures of a field in a light (packedField's): { packed, sunT }. */
@@ -266,7 +284,7 @@ export class GLView {
     };
     const shaped = shapedSuns(field);
     const groups = Array.from({ length: Math.ceil(SHAPE_TERMS / 4) }, (_, g) => 4 * g);
-    const layout = { suns: field.suns.length, shaped, env: !!m.env };
+    const layout = { suns: field.suns.length, shaped, env: !!m.env, sunMs: !!field.msLight };
     const phase = movingPhase(field);
     const programs = {
       exact: this.program({ packed: false, ...layout }),
@@ -277,7 +295,7 @@ export class GLView {
       dens: make(sigma_t, gl.R16F, gl.RED, halfFloats(sigma_t.data), gl.LINEAR, gl.FLOAT),
       tauA: tauTexture(taus.slice(0, 4)),
       tauB: tauTexture(taus.slice(4)),
-      rad: make(radiance_ms, gl.RGB16F, gl.RGB, m.ms.data, gl.LINEAR, gl.FLOAT),
+      ...this.makeRadiance(field, m),
       maj: make(majorant, gl.R16F, gl.RED, majorant.data, gl.NEAREST),
       ...this.makeMoving(field, m),
       env: m.env ? this.makeBackground(m.env) : null,
@@ -312,6 +330,9 @@ export class GLView {
       lightUnit: field.suns.map((s) => towardLight(field.worldToUnit, s.direction)),
       sigmaScale: Number(sigma_t.scale),
       tauPower: field.tauPower,
+      // L_ms = texel * uRadScale * exp(-min(uMsPower tau_light of sun 1, uMsRange)); power 0: 1
+      msPower: field.msLight ? field.msLight.power : [0, 0, 0],
+      msRange: field.msLight ? field.msLight.range : 0,
       majScale: Number(majorant.scale),
       ...m.uniforms,
       albedo: field.albedo,
@@ -401,6 +422,9 @@ export class GLView {
     set("uniform1f", "uSigmaScale", f.sigmaScale);
     set("uniform1f", "uTauPower", f.tauPower);
     set("uniform3fv", "uRadScale", f.radScale);
+    if (f.sunRadScale.length) set("uniform3fv", "uSunRadScale[0]", f.sunRadScale.flat());
+    set("uniform3fv", "uMsPower", f.msPower);
+    set("uniform1f", "uMsRange", f.msRange);
     set("uniform3fv", "uSky", f.background);
     set("uniform3fv", "uEnvScale", f.envScale);
     if (f.suns) {
@@ -431,6 +455,7 @@ export class GLView {
     const units = [
       ["uDens", fast ? t.packed : t.dens],
       ["uRad", t.rad],
+      ...(fast ? [] : f.sunRadScale.map((_, k) => [`uSunRad${k}`, t[`sunRad${k}`]])),
       ["uMaj", t.maj],
       ["uTauA", t.tauA],
       ["uSunT", t.sunT],

@@ -34,9 +34,10 @@ void main() {
 export const MAX_STEPS = 4096;
 
 /** Texture units a program of ``suns`` directional lights, ``shaped`` of them with view terms,
- * binds: uDens, uRad, uMaj, the tau textures, four for each shaped sun. */
-export function textureUnits(suns, shaped) {
-  return 3 + tauTextures(suns) + 4 * shaped;
+ * binds: uDens, uRad, uMaj, the tau textures, four for each shaped sun, and with ``sunMs`` (a
+ * field whose header has ms_light) one of L_ms for each sun. */
+export function textureUnits(suns, shaped, sunMs = false) {
+  return 3 + tauTextures(suns) + 4 * shaped + (sunMs ? suns : 0);
 }
 
 /** Textures of the suns' tau_light texels, a channel each: suns 1-4 (uTauA), 5-8 (uTauB). */
@@ -57,7 +58,7 @@ function tauTexel(k) {
  * suns: the field's directional lights (0 .. MAX_SUNS of field.js); shaped: the indices of
  * those whose view terms the field holds (an anisotropic phase; the exact march only).
  */
-export function fragmentShader({ packed = false, suns = 1, shaped = [], env = false, phase = false } = {}) {
+export function fragmentShader({ packed = false, suns = 1, shaped = [], env = false, phase = false, sunMs = false } = {}) {
   const ns = Math.max(1, suns); // GLSL arrays are never empty
   const range = (n) => Array.from({ length: n }, (_, k) => k);
   const shapedSuns = packed ? [] : shaped;
@@ -83,6 +84,14 @@ vec4 gB${k}[4];                  // its functions of direction at the ray's dire
               + dot(texture(uShape${k}_3, p) * uShapeScale${k}[3], gB${k}[3]));`,
     )
     .join("\n");
+  // with ms_light each sun's L_ms is a texture of its own, over its light factor
+  const apart = sunMs && !packed;
+  const sunMsDecls = apart ? range(suns).map((k) => `uniform sampler3D uSunRad${k}; // RGB: sun ${k}'s L_ms over its light factor / uSunRadScale (linear)`).join("\n") : "";
+  const sunMsLines = apart
+    ? range(suns)
+        .map((k) => `  s.ms += texture(uSunRad${k}, p).rgb * uSunRadScale[${k}] * exp(-min(uMsPower * s.tau[${k}], vec3(uMsRange)));`)
+        .join("\n")
+    : "";
   const basisLines = shapedSuns.map((k) => `  viewBasis(uShapeFrame${k} * d, gB${k});`).join("\n");
   return `#version 300 es
 #define PACKED ${packed ? 1 : 0}
@@ -117,7 +126,11 @@ uniform mat4 uWorldToUnit;    // world -> unit cube [0,1]^3 of the field
 uniform float uStep;          // largest segment, world units
 uniform float uSigmaScale;    // sigma_t per world unit = texel * uSigmaScale
 uniform float uTauPower;      // the tau texels hold q = exp(-uTauPower tau_light) (0: tau_light)
-uniform vec3 uRadScale;       // L_ms = texel * uRadScale
+uniform vec3 uRadScale;       // L_ms = texel * uRadScale (with ms_light: the sky's and maps' only)
+uniform vec3 uSunRadScale[NS]; // with ms_light: each sun's L_ms = texel * scale *
+uniform vec3 uMsPower;        // exp(-min(uMsPower tau_light, uMsRange)) (the header's ms_light)
+uniform float uMsRange;
+${sunMsDecls}
 uniform vec3 uDirect[NS];     // each sun's irradiance / 4pi (times phaseFactor per ray)
 uniform bool uAnisotropic;    // whether the phase is Henyey-Greenstein, not isotropic
 uniform vec3 uPhase;          // its lobes: g1, g2, the first's weight (g > 0 forward)
@@ -224,12 +237,13 @@ Sample sampleAt(vec3 p) {
 #endif
 #else
   s.sigma = texture(uDens, p).r * uSigmaScale;
+  vec3 pc = clamp(p, 0.0, 1.0);
+${tauLines}
   s.ms = texture(uRad, p).rgb * uRadScale;
+${sunMsLines}
   vec3 view = vec3(0.0);
 ${viewLines}
   s.ms = ${shapedSuns.length ? "max(s.ms + (4.0 * 3.14159265358979) * view, 0.0)" : "s.ms"};
-  vec3 pc = clamp(p, 0.0, 1.0);
-${tauLines}
 #endif
   return s;
 }
