@@ -13,10 +13,12 @@ DISNEY_16 = (154, 86, 126)
 
 def test_disney_sized_field_fits_in_memory(browser, service, data_dir):
     """A field the size of Disney 1/16's (126x86x154 voxels, its multiple scattering at the same
-    resolution and its tau_light at twice it, as the bake makes it) is drawn with at most 64 MB
+    resolution and its tau_light at twice it, its sun's L_ms over its light factor, as the bake
+    makes it) is drawn with at most 64 MB
     of textures and 200 MB of page memory: the JS heap after loading plus the GPU textures."""
     field = make_field(shape=DISNEY_16, block=8, ms_coarsen=1)
     light_depth_from_above(field, fine=True)
+    field["header"]["ms_light"] = {"power": [0.1, 0.1, 0.1], "range": 1.25}  # (the sun's L_ms apart)
     # (uncompressed: Chromium does not gunzip a response that a test fulfils)
     body = encode(field)
     pg = new_page(browser)

@@ -165,7 +165,7 @@ export function packedField(field, mix, { phase = false } = {}) {
   const taus = field.suns.map((s) => voxelTransmittance(field.arrays[s.tau], field.tauPower, sigma_t.shape));
   // what is resampled: the mixed L_ms, and each sun's apart (mix.sunMs, with ms_light) with its
   // light factor at the voxel's transmittance
-  const sources = [{ ms: mix.ms, sun: -1 }, ...(mix.sunMs || []).map((ms, sun) => ({ ms, sun }))];
+  const sources = [{ ms: mix.ms, sun: -1 }, ...(mix.sunMs || []).map((ms, sun) => ({ ms, sun }))].filter((s) => !s.ms.empty);
   const { power, range } = field.msLight || { power: [0, 0, 0], range: 0 };
   const X = axisWeights(nx, mx);
   const Y = axisWeights(ny, my);

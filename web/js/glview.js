@@ -73,7 +73,8 @@ function mixOf(field, mix) {
   const lights = lightsOf(field, mix);
   const apart = field.components.map((c) => !!field.msLight && c.type === "directional");
   const only = (keep) => lights.components.map((e, k) => (keep(k) ? e : [0, 0, 0]));
-  const ms = mixedRadiance(field, only((k) => !apart[k]));
+  // (every component a sun's: the others' texture is one zero texel, not a grid of zeros)
+  const ms = apart.every((a) => a) ? { data: new Float32Array(3), scale: [1, 1, 1], empty: true } : mixedRadiance(field, only((k) => !apart[k]));
   const sunMs = apart.flatMap((a, k) => (a ? [mixedRadiance(field, only((j) => j === k))] : []));
   const env = mixedBackground(field, lights.components);
   const direct = lights.suns.map((E) => E.map((e) => e / (4 * Math.PI)));
@@ -173,7 +174,9 @@ export class GLView {
     const shape = shapedSuns(field).reduce((n, k) => n + 8 * Math.ceil(SHAPE_TERMS / 4) * count(field.arrays[field.suns[k].shape.array]), 0);
     const env = field.components.find((c) => c.background);
     const background = env ? 8 * field.arrays[env.background].shape[0] * field.arrays[env.background].shape[1] : 0;
-    const rads = 1 + (field.msLight ? field.suns.length : 0); // the others' L_ms, each sun's apart
+    // the others' L_ms (with ms_light: none where every light is a sun), each sun's apart
+    const others = !field.msLight || field.components.some((c) => c.type !== "directional");
+    const rads = (others ? 1 : 0) + (field.msLight ? field.suns.length : 0);
     return Math.round(density * count(sigma_t) + taus + 8 * rads * count(radiance_ms) + 2 * count(majorant) + shape + background);
   }
 
@@ -228,7 +231,8 @@ export class GLView {
   /** The L_ms textures of a field in a light (mixOf's): { rad, sunRad0, ... }, RGB16F. */
   makeRadiance(field, m) {
     const gl = this.gl;
-    const make = (ms) => this.makeTexture(field.arrays.radiance_ms, gl.RGB16F, gl.RGB, ms.data, gl.LINEAR, gl.FLOAT);
+    const grid = (ms) => (ms.empty ? { shape: [1, 1, 1] } : field.arrays.radiance_ms);
+    const make = (ms) => this.makeTexture(grid(ms), gl.RGB16F, gl.RGB, ms.data, gl.LINEAR, gl.FLOAT);
     return Object.fromEntries([["rad", make(m.ms)], ...m.sunMs.map((ms, k) => [`sunRad${k}`, make(ms)])]);
   }
 
