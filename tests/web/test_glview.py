@@ -71,6 +71,19 @@ def render(page, field, cams, exposure=0.0, fast=False, mix=None, remix=None):
     ]
 
 
+def refusal(page, field) -> str:
+    """The page's decoder's message refusing ``field``, or "" where it reads it."""
+    return page.evaluate(
+        """async (b64) => {
+        const { decodeField } = await import('/js/field.js');
+        try { decodeField(Uint8Array.from(atob(b64), (c) => c.charCodeAt(0)).buffer); }
+        catch (e) { return e.message; }
+        return "";
+      }""",
+        base64.b64encode(encode(field)).decode(),
+    )
+
+
 def test_decode_reads_header_and_arrays(page):
     field = make_field()
     b64 = base64.b64encode(encode(field)).decode()
@@ -202,17 +215,7 @@ def test_a_tau_grid_of_another_resolution_is_refused_in_words(page):
         field["header"].pop("tau_power")
         if power:
             field["header"]["tau_power"] = power
-        refusals.append(
-            page.evaluate(
-                """async (b64) => {
-                const { decodeField } = await import('/js/field.js');
-                try { decodeField(Uint8Array.from(atob(b64), (c) => c.charCodeAt(0)).buffer); }
-                catch (e) { return e.message; }
-                return "";
-              }""",
-                base64.b64encode(encode(field)).decode(),
-            )
-        )
+        refusals.append(refusal(page, field))
     assert "neither at sigma_t's resolution nor at twice it" in refusals[0], refusals
     assert "needs the header's tau_power" in refusals[1], refusals
 
@@ -290,13 +293,5 @@ def test_ms_light_factor_is_multiplied_back_as_the_header_says(page):
         (img,) = render(page, field, [cam], exposure=1.0, fast=fast)
         assert rel_mae(img, ref) < tol, f"fast={fast}"
     field["header"]["ms_light"] = {"power": [0.3, 0.6], "range": 1.25}
-    message = page.evaluate(
-        """async (b64) => {
-        const { decodeField } = await import('/js/field.js');
-        try { decodeField(Uint8Array.from(atob(b64), (c) => c.charCodeAt(0)).buffer); }
-        catch (e) { return e.message; }
-        return "";
-      }""",
-        base64.b64encode(encode(field)).decode(),
-    )
+    message = refusal(page, field)
     assert "ms_light" in message, message
