@@ -78,8 +78,8 @@ WALKS = 64
 #: 1 point 5.9 %, 2 points 8.4 % (gather 3.0 %); smoothing the ratio to the one-flight L_ms
 #: instead read 4.8 % there and 7.9 / 5.5 % at g = 0.85.
 WALK_SMOOTH = 2.0
-#: The field keeps L_ms over a factor of the first sun's light, f = exp(-min(P tau_light, RANGE)),
-#: and its readers multiply it back at the point they read (field.py, :func:`light_factor`): in a
+#: The field keeps each sun's L_ms over a factor of that sun's light, f = exp(-min(P tau_light,
+#: RANGE)), and its readers multiply it back where they read (field.py, :func:`light_factor`): in a
 #: dense cloud L_ms falls within a fraction of a voxel below a lit surface, like the light, and
 #: tau_light is read on a grid up to twice as fine. P per channel grows with absorption, as the
 #: diffusion's decay sqrt(3 (1 - albedo)) does: P = P_0 + P_1 sqrt(3 (1 - albedo)). Chosen on the

@@ -109,7 +109,7 @@ export function decodeField(buffer) {
   if (fineTau && !(tauPower > 0)) {
     throw new FieldError("a tau_light finer than sigma_t needs the header's tau_power");
   }
-  // L_ms held over the first sun's light factor exp(-min(P tau, range)) (absent: L_ms itself)
+  // each sun's L_ms held over its own light factor exp(-min(P tau, range)) (absent: L_ms itself)
   const ml = header.ms_light;
   const msLight = ml ? { power: vec(ml.power, 3, "ms_light.power"), range: Number(ml.range) } : null;
   if (msLight && (!lights.suns.length || !(msLight.range >= 0) || !msLight.power.every((p) => p >= 0))) {
