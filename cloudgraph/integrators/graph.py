@@ -124,10 +124,10 @@ class FieldTextures:
         """The radiance after the first scattering of a v1.1 field's components other than its
         directional lights (sky, maps), mixed by the scene's intensities (lights.py); None
         without any."""
-        rest = [c for c, e in enumerate(field.meta.get("lights", ())) if e["type"] != "directional"]
+        comps = field.meta.get("lights", ())
+        rest = [c for c, e in enumerate(comps) if e["type"] != "directional"]
         if not rest:
             return None
-        comps = field.meta["lights"]
         return sum(lights.mix[c].astype(np.float32) * field.array(comps[c]["ms"]) for c in rest)
 
     @classmethod

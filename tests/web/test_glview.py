@@ -276,7 +276,7 @@ def test_quality_ladder_and_controller(page):
 
 
 def test_ms_light_factor_is_multiplied_back_as_the_header_says(page):
-    """A field's L_ms held over the first sun's light factor (header ``ms_light``: field.py)
+    """A field's L_ms held over its sun's light factor (header ``ms_light``: field.py)
     is drawn times exp(-min(P tau_light, range)) per channel, at rest and moving, as the numpy
     march reads it; the image without the factor differs, and a bad ms_light is refused."""
     field = make_field()
