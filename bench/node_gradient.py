@@ -14,6 +14,7 @@ today's lookup and with the gradients, against the 1024-spp RR-free volpath refe
 ``cloudgraph bench --parts`` keeps in bench/reference-cache.
 """
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -56,44 +57,26 @@ def gradient_operators(positions: np.ndarray, radius: np.ndarray, k: int = 16, w
 
 
 class GradientGrid(NodeGrid):
-    """A node grid whose lookup extrapolates each node by its gradient (module docstring)."""
+    """A node grid whose lookup extrapolates each node by its gradient (module docstring), as
+    weighted means of Eq. 4.25's own weights: sum_a w_a (L_a + G_a (p - c_a)) / sum_a w_a is
+    mean(L) + p . mean(G) - mean(G . c), each mean today's lookup of another per-node array."""
 
     @classmethod
     def of(cls, grid: NodeGrid, positions, search_radius, radiance) -> "GradientGrid":
         out = cls(**{f: getattr(grid, f) for f in grid.__dataclass_fields__})
         ops = gradient_operators(positions.astype(np.float64), search_radius.astype(np.float64))
-        out.gradient = tuple(to_jit(mi.Color3f, (op @ radiance.astype(np.float64)).astype(np.float32)) for op in ops)
+        g = [op @ radiance.astype(np.float64) for op in ops]  # (N, 3) each: dL/dx, dL/dy, dL/dz
+        g_dot_c = sum(g[axis] * positions[:, axis : axis + 1] for axis in range(3))
+        out.terms = [to_jit(mi.Color3f, a.astype(np.float32)) for a in (*g, g_dot_c)]
         return out
 
-    @dr.syntax
     def lookup(self, p: mi.Point3f, eps2: float, active: mi.Bool) -> mi.Color3f:
-        gx, gy, gz = self.gradient  # (read outside the loop: Dr.Jit's loop state holds the fields)
-        g = (p - mi.Point3f(*self.origin)) / self.cell
-        inside = active & dr.all((g >= 0) & (g < mi.Point3f(*self.dims)))
-        gi = mi.Vector3u(dr.clip(mi.Vector3i(g), 0, mi.Vector3i(*self.dims) - 1))
-        c = gi.x + self.dims[0] * (gi.y + self.dims[1] * gi.z)
-        i = dr.gather(mi.UInt32, self.cell_start, c, inside)
-        end = dr.gather(mi.UInt32, self.cell_start, c + 1, inside)
-        L = mi.Color3f(0.0)
-        W = mi.Float(0.0)
-        loop = inside & (i < end)
-        while dr.hint(loop, label="node_gather_gradient"):
-            a = dr.gather(mi.UInt32, self.entries, i, loop)
-            dp = p - dr.gather(mi.Point3f, self.positions, a, loop)
-            d2 = dr.squared_norm(dp)
-            near = loop & (d2 < dr.gather(mi.Float, self.radius2, a, loop))
-            w = dr.rcp(dr.maximum(d2, eps2))
-            La = dr.gather(mi.Color3f, self.radiance, a, near)
-            dL = (
-                dr.gather(mi.Color3f, gx, a, near) * dp.x
-                + dr.gather(mi.Color3f, gy, a, near) * dp.y
-                + dr.gather(mi.Color3f, gz, a, near) * dp.z
-            )
-            W[near] += w
-            L[near] += w * (La + dr.clip(dL, -La, La))  # (never below 0, at most twice L_a)
-            i += 1
-            loop &= i < end
-        return dr.select(W > 0, L / W, 0.0)
+        def mean(values):
+            return NodeGrid.lookup(dataclasses.replace(self, radiance=values), p, eps2, active)
+
+        gx, gy, gz, g_dot_c = (mean(t) for t in self.terms)
+        L = NodeGrid.lookup(self, p, eps2, active) + p.x * gx + p.y * gy + p.z * gz - g_dot_c
+        return dr.maximum(L, 0.0)
 
 
 if __name__ == "__main__":
