@@ -135,7 +135,8 @@ def bake_field(
         fp: the field's grid points (:meth:`FieldPoints.of` the builder's volume and medium).
         graph: the :class:`~cloudgraph.graph.Graph` (positions, search ranges, counts).
         radiance_gather: (K, N, 3) node radiance with one scattering event fewer (as ``gather``),
-            per light component (lights.py).
+            per light component (lights.py); with the isotropic phase without the suns' direct
+            light (precompute.without_sun), which the bake adds at the grid points from tau_light.
         albedo: (3,); lights: the scene's :class:`~cloudgraph.lights.Lights`.
         chunks: runs the marches' chunks (:func:`field_chunk`; stages.py), as in ``build_graph``.
         marched: the light marches' results (:func:`march_light`), if already put out.
@@ -162,7 +163,7 @@ def bake_field(
     # Multiple scattering, as ``gather`` computes it but on the grid: one more flight from the
     # grid point, to p'', where the graph's albedo L' stands in for the rest (Eq. 4.25):
     #   L_ms(x) = 1/4pi int_S2 int_0^inf T_r(x, x + t w) sigma_t(x + t w) G(x + t w) dt dw,
-    #   G = albedo L'_search (radiance_gather),
+    #   G = albedo L'_search (radiance_gather) + albedo E exp(-tau_light) / 4pi per sun,
     # with G baked on the field grid first (one node lookup per point), then K fixed directions
     # per point (a spherical Fibonacci set, turned at random per point) marched in closed form.
     # The sky's component also takes what escapes: its single scattering, smooth, baked here.
@@ -201,10 +202,17 @@ def bake_field(
     fine = fine_shape((nz, ny, nx), len(marched)) is not None
     tau_power = FINE_POWER if fine else TAU_POWER
 
+    raw = {}
+
+    def marched_tau(c: int) -> np.ndarray:  # sun c's: the points', then the sub-voxel samples'
+        if c not in raw:
+            raw[c] = placed(marched[c], len(points) + len(fp.sub), 1)[:, 0]
+        return raw[c]
+
     def light_depths() -> list:  # placed once
         if not taus:
-            for m in marched:
-                tau = placed(m, len(points) + len(fp.sub), 1)[:, 0]
+            for c in range(len(marched)):
+                tau = marched_tau(c)
                 tau_grid = _scatter(near, tau[: len(points)], (nz, ny, nx))
                 samples = (fp.sub_coords, tau[len(points) :])
                 if fine:
@@ -213,9 +221,16 @@ def bake_field(
                     taus.append(fit_depth(tau_grid, fp.sigma_t, *samples))
         return taus
 
+    # With the isotropic phase the nodes' radiance is without the suns' direct light
+    # (precompute.without_sun): G takes it exactly at the grid points, from their tau_light
+    sun_exact = lobes is None and not 0 <= max_depth < 2
     gathered, walked = [], []
     for c, lk in enumerate(looked):
-        G = _scatter(near, placed(lk, len(points), 3), (nz, ny, nx, 3))
+        G = placed(lk, len(points), 3)
+        if sun_exact and lights.kind(c) == "directional":  # (component c is directional light c)
+            sun = np.asarray(albedo, np.float32) * lights.cached[c] / np.float32(4.0 * np.pi)
+            G += np.exp(-marched_tau(c))[: len(points), None].astype(np.float32) * sun.astype(np.float32)
+        G = _scatter(near, G, (nz, ny, nx, 3))
         inputs = {"points": q, "G": G, "step": step, "sky": np.array([int(lights.kind(c) == "sky")])}
         if lights.kind(c) == "envmap":  # what escapes sees the map: the file, read where it runs
             inputs["envmap"] = np.array([lights.envmaps[c - lights.count + len(lights.envmaps)]])

@@ -3,7 +3,8 @@
 
 Everything after the first scattering is computed as ``gather`` computes it at its camera
 collision: one more flight from the grid point to p'', where G = albedo L'_search (the
-``radiance_gather`` of Eq. 4.25, on the field grid) stands in for the rest,
+``radiance_gather`` of Eq. 4.25, on the field grid, with the isotropic phase plus each sun's
+direct light at the grid point: field.py) stands in for the rest,
 
     L_ms(x) = 1/4pi int_S2 int_0^inf T_r(x, x + t w) sigma_t(x + t w) G(x + t w) dt dw,
 

@@ -171,8 +171,9 @@ def unpack_graph(z: dict) -> Graph:
 
 
 def pack_radiance(radiance: np.ndarray, radiance_gather: np.ndarray) -> dict:
-    """Node radiance L' and L' with one scattering event fewer ((N, 3) each; the same array when
-    depth is unbounded, then kept once), rounded to 8 significant bits (bfloat16: a relative
+    """Node radiance L' and ``gather``'s (one scattering event fewer, and with the isotropic phase
+    without the suns' direct light: precompute.without_sun; (N, 3) each; kept once where they are
+    the same), rounded to 8 significant bits (bfloat16: a relative
     error under 0.4 % at any magnitude, well below a node's own sampling noise, and a back-lit
     cloud's dark side keeps its precision)."""
     out = {"radiance": _bfloat16(radiance)}

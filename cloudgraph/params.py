@@ -120,5 +120,6 @@ def build_params(volume: Volume, density_scale: float, quality: str = "default",
 
 
 #: Lighting parameters that enter the radiance key, with the version of the field's bake (its
-#: file is kept under the radiance key: a new bake must not find an old one's).
-LIGHTING = {"samples": 16, "tol": 1e-5, "transport": "krylov", "field": 5}
+#: file is kept under the radiance key: a new bake must not find an old one's) and of what
+#: ``gather``'s node radiance holds (2: without the suns' direct light, precompute.without_sun).
+LIGHTING = {"samples": 16, "tol": 1e-5, "transport": "krylov", "field": 6, "gather": 2}

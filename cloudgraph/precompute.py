@@ -52,8 +52,9 @@ class RadianceCache:
 
     Attributes:
         radiance: (N, 3) float32 node radiance L' (Algorithm 1), phase function included.
-        radiance_gather: (N, 3) the same with one scattering event fewer (max_depth - 1), for
-            estimators that scatter once more before looking up (the same when unbounded).
+        radiance_gather: (N, 3) the same with one scattering event fewer (max_depth - 1), less
+            the directional lights' direct radiance (:func:`without_sun`), for estimators that
+            scatter once more before looking up and take the sun's light there exactly.
         field: the baked :class:`~cloudgraph.field_file.RadianceField` (the ``field`` estimator's),
             decoded from ``field_data`` (the field file's bytes) when first used: a precompute job
             never uses it.
@@ -238,6 +239,8 @@ def precompute(
             L_gather = L
         else:
             L_gather = transport(C, L_d, albedo, depth - 1, LIGHTING["tol"], cancelled=still_wanted)[0]
+        if isotropic:  # (an anisotropic phase's walks read the similarity-scaled graph's all)
+            L_gather = without_sun(L_gather, L_d, lights, depth)
         t_transport = time.perf_counter() - t0
         packed = pack_radiance(stack_components(L, lights.count), stack_components(L_gather, lights.count))
         radiance, radiance_gather = unpack_radiance(packed)
@@ -352,6 +355,18 @@ def _composed(scene, volume, quality, store, progress, chunks, keys, build_overr
     }
     stats = {**rstats, **{f"{kind}_bytes": _size(path) for kind, path in paths.items()}}
     return RadianceCache(radiance, radiance_gather, field_data, keys, stats, store, parts[0]._graph)
+
+
+def without_sun(L_gather: np.ndarray, L_d: np.ndarray, lights: Lights, max_depth: int) -> np.ndarray:
+    """(N, 3 K) ``gather``'s node radiance of the isotropic phase: L' with one event fewer, less
+    the directional lights' direct radiance L_d, which ``gather`` and the field's bake take
+    exactly where they look the graph up (the second scattering event; none where ``max_depth``
+    is 1). A node's L_d is the light at its position, but the points looked up near it lie
+    around it, where the light falls by exp(-tau) across the node (docs/method.md)."""
+    if 0 <= max_depth < 2:
+        return L_gather
+    suns = np.repeat([lights.kind(c) == "directional" for c in range(lights.count)], 3)
+    return np.where(suns, np.maximum(L_gather - L_d, 0.0), L_gather)
 
 
 def stack_components(L: np.ndarray, k: int) -> np.ndarray:

@@ -9,7 +9,8 @@ The camera-stage estimator of Eq. 4.24 is a replaceable part (``estimator``):
 | estimator     | what it does                                                              |
 |---------------|---------------------------------------------------------------------------|
 | ``gather``      | default: p' by delta tracking, single scattering at p' exact (ratio      |
-|                 | tracking to the light), then one free flight to p'' and L'_search(p'')   |
+|                 | tracking to the light), then one free flight to p'', the light there     |
+|                 | exact too, and L'_search(p'') of the rest                                |
 | ``free_flight`` | the thesis's: sample p' by delta tracking, weight albedo(p') L'_search(p') |
 | ``march``       | jittered ray march: sum T_r sigma_s L'_search dt along the ray (less noise) |
 | ``field``       | deterministic march of the baked radiance field (``cloudgraph/field.py``): |
@@ -19,7 +20,8 @@ Looking L' up where the camera's collision falls biases thick media upwards: nod
 deeper than the camera's first collision, and radiance grows with depth below a free surface
 (§4.7). ``gather`` moves the lookup one flight further and computes what escapes on the way
 exactly, as final gathering does for photon maps; its node radiance must then cover one
-scattering event fewer (``radiance_gather`` in the cache).
+scattering event fewer (``radiance_gather`` in the cache). At that second event p'' it takes the
+suns' direct light exactly too (ratio tracking), and the graph's node radiance without it.
 
 Plugin parameters (set through :meth:`GraphIntegrator.set_cache`, not the scene dict):
 
@@ -211,6 +213,7 @@ class GraphIntegrator(mi.SamplingIntegrator):
             )
         self.bounces = int(bounces) if bounces else phase_bounces(phase)
         self.tail = max_depth < 0  # whether the graph takes over after the exact events
+        self.sun_at_p2 = max_depth < 0 or max_depth >= 2  # gather: the suns' light at p'' exact
         if not self.tail:
             self.bounces = max(int(max_depth), 0)
         if (field is None) == (estimator == "field"):
@@ -275,17 +278,26 @@ class GraphIntegrator(mi.SamplingIntegrator):
         # direction drawn from the map, the two weighted by the power heuristic
         t, collided = sample_collision(self.medium, o, d, rng, active)
         p = mi.Point3f(o + t * d)
-        L_ss = mi.Color3f(0.0)
-        for to_light, E in zip(self.to_light, self.irradiance, strict=True):  # the lights, unrolled
-            Tr = ratio_tracking(self.medium, p, mi.Vector3f(*to_light), rng, collided)
-            L_ss += Tr * E / (4.0 * dr.pi)
+        L_ss = self._sun_light(p, rng, collided)
         for env, scale in zip(self.envs, self.env_scale, strict=True):  # maps: their own samples too
             L_ss += scale * envmap_nee(self.medium, env, p, rng, collided)
         w = uniform_sphere(rng)
         t2, collided2 = sample_collision(self.medium, p, w, rng, collided)
-        L_ms = mi.Color3f(*self.albedo) * self.grid.lookup(p + t2 * w, self.eps2, collided2)
-        L_in = L_ss + dr.select(collided2, L_ms, self._background(collided, w, p))
+        p2 = mi.Point3f(p + t2 * w)
+        # at p'' the suns' direct light is exact too (the graph's node radiance is without it:
+        # precompute.without_sun), the rest from the graph
+        L_p2 = self.grid.lookup(p2, self.eps2, collided2)
+        if self.sun_at_p2:  # (a Python-level switch: max_depth 1 has no second event)
+            L_p2 += self._sun_light(p2, rng, collided2)
+        L_in = L_ss + dr.select(collided2, mi.Color3f(*self.albedo) * L_p2, self._background(collided, w, p))
         return dr.select(collided, mi.Color3f(*self.albedo) * L_in, self._background(active, d))
+
+    def _sun_light(self, p, rng, active) -> mi.Color3f:
+        # The directional lights' in-scattered radiance at p: ratio tracking to each, unrolled
+        L = mi.Color3f(0.0)
+        for to_light, E in zip(self.to_light, self.irradiance, strict=True):
+            L += ratio_tracking(self.medium, p, mi.Vector3f(*to_light), rng, active) * E / (4.0 * dr.pi)
+        return L
 
     def _gather_phase(self, o, d, rng, active):
         # gather with an anisotropic phase: the first ``bounces`` scattering events exactly
