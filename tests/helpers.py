@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cloudgraph.procedural import box_volume
+from cloudgraph.procedural import box_volume, noise_volume
 from cloudgraph.render import render_volpath
 from cloudgraph.scene import parse_scene
 
@@ -74,6 +74,15 @@ def rotated_affine() -> np.ndarray:
 
 #: Light as in the bench: oblique, mostly towards -z.
 LIGHT = [0.55, -0.25, -0.8]
+#: A view at right angles to LIGHT: the cloud side-lit (framed_camera normalises it)
+SIDE = np.cross(LIGHT, [0.0, 0.0, 1.0]).tolist()
+
+
+def dense_cloud(optical_depth: float = 4.0):
+    """The tests' dense cloud: a 32^3 noise cloud (seed 11) and the density scale that puts its
+    densest voxel at ``optical_depth`` (a dense cloud's light falls by exp(-4) across a voxel)."""
+    volume = noise_volume(32, seed=11)
+    return volume, optical_depth / float(volume.density.max() * volume.voxel_size.max())
 
 
 def framed_camera(volume, eye_dir=(0.6, 0.0, 0.8), size=40) -> dict:

@@ -18,7 +18,7 @@ from cloudgraph.light_depth import FINE_POWER
 from cloudgraph.metrics import bias_metrics, binned
 from cloudgraph.precompute import precompute
 
-from ..helpers import LIGHT, box_interval, cube_volume, medium_scene, pixel_rays, reference
+from ..helpers import LIGHT, SIDE, box_interval, cube_volume, dense_cloud, medium_scene, pixel_rays, reference
 
 
 def renderer(cache, volume, scene):
@@ -173,12 +173,8 @@ def test_a_side_lit_dense_cloud_s_multiple_scattering_reads_as_gather_does(varia
     # In a dense cloud L_ms falls within a fraction of a voxel below a lit surface, which the
     # L_ms grid's linear interpolation reads dark; the field keeps L_ms over a factor of the
     # light, exp(-min(P tau_light, range)), and multiplies it back where it reads (field_ms.py).
-    from cloudgraph.procedural import noise_volume
-
-    volume = noise_volume(32, seed=11)
-    side = np.cross(LIGHT, [0.0, 0.0, 1.0])
-    scale = 4.0 / float(volume.density.max() * volume.voxel_size.max())  # optical depth 4 a voxel
-    scene = medium_scene(volume, scale, albedo=0.8, eye_dir=side, size=32)
+    volume, scale = dense_cloud()  # optical depth 4 a voxel
+    scene = medium_scene(volume, scale, albedo=0.8, eye_dir=SIDE, size=32)
     cache = precompute(scene, volume, "draft", CacheStore(tmp_path))
     assert cache.field.meta["ms_light"]["power"] == pytest.approx([0.45] * 3, abs=0.01)
     r = renderer(cache, volume, scene)

@@ -22,7 +22,15 @@ from cloudgraph.precompute import precompute
 from cloudgraph.procedural import sphere_volume
 from cloudgraph.volume import Volume
 
-from ..helpers import LIGHT, kernels_compiled_by_the_second, medium_scene, reference, render_march
+from ..helpers import (
+    LIGHT,
+    SIDE,
+    dense_cloud,
+    kernels_compiled_by_the_second,
+    medium_scene,
+    reference,
+    render_march,
+)
 
 
 def graph_arrays(g) -> list[np.ndarray]:
@@ -139,14 +147,10 @@ def test_gather_takes_the_sun_s_light_exactly_at_its_second_event(variant, tmp_p
     # max_depth 2 nothing comes after p'': the nodes hold nothing, and gather is an exact
     # estimator of two scattering events, in a dense cloud (optical depth 4 a voxel) whose light
     # falls by exp(-4) across a voxel, where a node's direct light read at p'' is biased most.
-    from cloudgraph.procedural import noise_volume
     from cloudgraph.render import GraphRenderer
 
-    volume = noise_volume(32, seed=11)
-    side = np.cross(LIGHT, [0.0, 0.0, 1.0])
-    eye = {"side": tuple(side / np.linalg.norm(side)), "back": LIGHT}[view]
-    scale = 4.0 / float(volume.density.max() * volume.voxel_size.max())
-    scene = medium_scene(volume, scale, albedo=1.0, eye_dir=eye, size=32)
+    volume, scale = dense_cloud()
+    scene = medium_scene(volume, scale, albedo=1.0, eye_dir={"side": SIDE, "back": LIGHT}[view], size=32)
     scene = scene.model_copy(update={"render": scene.render.model_copy(update={"max_depth": 2})})
     cache = precompute(scene, volume, "draft", CacheStore(tmp_path))
     assert cache.radiance.max() > 0 and cache.radiance_gather.max() == 0.0
