@@ -12,7 +12,7 @@ import os
 __version__ = "0.1.0"
 
 #: Bumped whenever the meaning of a cache key or of an on-disk file changes.
-ENGINE_FORMAT_VERSION = 6
+ENGINE_FORMAT_VERSION = 7
 
 
 def _find_libllvm() -> str | None:

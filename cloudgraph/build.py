@@ -308,6 +308,8 @@ def build_graph(
     ranges = chunks(builder, "search", {"positions": nodes})  # other workers start on them
     out_samples = table.out[by_key]
     counts = table.counts_by_key()
+    # where each edge's samples collided, from its end node's position (Graph.landing)
+    landing = (table.landed_by_key() - nodes[counts.indices]).astype(np.float32)
     search = placed(ranges, n, 1)[:, 0]
     t_group = time.perf_counter() - t0
 
@@ -324,4 +326,4 @@ def build_graph(
         "build_s": round(time.perf_counter() - t_start, 3),
     }
     log.info("graph: %s", stats)
-    return Graph(positions, search, out_samples, counts, stats)
+    return Graph(positions, search, out_samples, counts, stats, landing)

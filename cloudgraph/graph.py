@@ -7,6 +7,11 @@ counted (escapes included), and per edge a -> b the samples from a that collide 
     T       = C . diag(albedo)                       (formed in transport.py)
 
 so the graph depends on sigma_t only, never on albedo or light colour.
+
+A flight from a lands in b on a's side of b: an edge reads b's radiance at b's position, the
+mean of all b's collisions, where its own samples collided nearer to a. Per edge the graph keeps
+where they did (``landing``), and transport reads b there, to first order, by b's radiance
+gradient (:meth:`Graph.transitions`; docs/method.md, "Where a flight lands").
 """
 
 from __future__ import annotations
@@ -16,6 +21,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+#: The radiance gradient of a node: a weighted least-squares plane through its GRADIENT_NODES
+#: nearest nodes, weighted by a Gaussian of GRADIENT_WIDTH search ranges (regularised by
+#: GRADIENT_RIDGE search ranges squared), as a linear operator on the radiance. On the bench's
+#: thick, dense and held-out clouds 8 nodes at one range and 16 at two read the same image means
+#: within 0.3 % (docs/measurements.md, "Where a flight lands"); 8 take half the time.
+GRADIENT_NODES = 8
+GRADIENT_WIDTH = 1.0
+GRADIENT_RIDGE = 0.05
 
 
 @dataclass
@@ -28,6 +43,8 @@ class Graph:
         out_samples: (N,) int64 outgoing free-flight samples per node, escapes included.
         counts: (N, N) CSR int64, counts[a, b] = samples from a that collided in b.
         stats: sizes and stage times.
+        landing: (E, 3) float32, per entry of ``counts`` (CSR order) the mean of where its
+            samples collided less b's position, world units (None: unknown, read at b).
     """
 
     positions: np.ndarray
@@ -35,6 +52,7 @@ class Graph:
     out_samples: np.ndarray
     counts: sp.csr_matrix
     stats: dict = field(default_factory=dict)
+    landing: np.ndarray | None = None
 
     @property
     def n_nodes(self) -> int:
@@ -48,11 +66,40 @@ class Graph:
         inv = np.divide(1.0, self.out_samples, out=np.zeros(self.n_nodes), where=self.out_samples > 0)
         return sp.csr_matrix(sp.diags(inv) @ self.counts)
 
+    def transitions(self, workers: int = 1) -> Transitions:
+        """The collision probabilities with each edge read where its flights landed (the module
+        docstring): T x = C x + sum_axis S_axis (D_axis x), S_axis = C times the landing offsets
+        on that axis, D_axis the nodes' gradient operator (:func:`gradient_operators`, its k-d tree
+        queried on ``workers`` threads)."""
+        C = self.collision_matrix()
+        C.sort_indices()
+        if self.landing is None or not C.nnz:
+            return Transitions(C)
+        counts = self.counts.tocsr()
+        counts.sort_indices()
+        assert np.array_equal(counts.indptr, C.indptr) and np.array_equal(counts.indices, C.indices)
+        D = gradient_operators(
+            self.positions.astype(np.float64), self.search_radius.astype(np.float64), workers
+        )
+        # S_x, S_y, S_z side by side (N, 3N): column 3 b + axis, against D's rows stacked alike
+        n, e = C.shape[0], C.nnz
+        S = sp.csr_matrix(
+            (
+                (C.data[:, None] * self.landing).ravel(),
+                (3 * C.indices[:, None] + np.arange(3)[None, :]).ravel(),
+                3 * C.indptr,
+            ),
+            shape=(n, 3 * n),
+        )
+        return Transitions(C, S, D) if e else Transitions(C)
+
     def to_arrays(self) -> dict:
         """The graph as plain arrays (the inputs of a ``graph_file`` chunk, GraphBuilder); the
         counts in the smallest unsigned type that holds them (the file packs them anyway)."""
         c = self.counts
+        landing = {} if self.landing is None else {"landing": self.landing}
         return {
+            **landing,
             "positions": self.positions,
             "search_radius": self.search_radius,
             "out_samples": self.out_samples,
@@ -75,6 +122,7 @@ class Graph:
             np.asarray(a["out_samples"]),
             counts,
             stats,
+            np.asarray(a["landing"]) if "landing" in a else None,
         )
 
     def escape_samples(self) -> np.ndarray:
@@ -85,3 +133,71 @@ class Graph:
 def compact_uint(a: np.ndarray) -> np.ndarray:
     """Non-negative integers in the smallest unsigned type that holds them."""
     return a.astype(np.min_scalar_type(int(a.max())) if a.size else np.uint8)
+
+
+class Transitions:
+    """The graph's transition operator for transport (:meth:`Graph.transitions`): ``T @ x`` for
+    (N,) or (N, K) x, and its ``diagonal()`` (a Jacobi preconditioner's). ``S`` (N, 3N) and
+    ``D`` (3N, N): the landing offsets and the gradients, axes interleaved (None: C alone)."""
+
+    def __init__(self, C: sp.csr_matrix, S: sp.csr_matrix | None = None, D: sp.csr_matrix | None = None):
+        self.C, self.S, self.D, self.shape = C, S, D, C.shape
+
+    def __matmul__(self, x: np.ndarray) -> np.ndarray:
+        out = self.C @ x
+        if self.S is not None:
+            out += self.S @ (self.D @ x)
+        return out
+
+    def diagonal(self) -> np.ndarray:
+        diag = self.C.diagonal()
+        if self.S is not None:  # (S D)[a, a] = sum_j S[a, j] D[j, a]
+            diag = diag + np.asarray(self.S.multiply(self.D.T.tocsr()).sum(axis=1)).ravel()
+        return diag
+
+
+def gradient_operators(positions: np.ndarray, search_radius: np.ndarray, workers: int = 1) -> sp.csr_matrix:
+    """(3N, N) sparse: row 3 a + axis of (D L) is node a's radiance gradient on that axis, the
+    weighted least-squares plane through its GRADIENT_NODES nearest nodes b, minimising
+    sum_b w_b (L_b - L_a - G . (c_b - c_a))^2, w_b a Gaussian of GRADIENT_WIDTH search ranges
+    (c: the positions, (N, 3); ``search_radius`` (N,)). A linear L's gradient to within the ridge's
+    shrinkage (about 1 %)."""
+    n = len(positions)
+    k = min(GRADIENT_NODES, n - 1)
+    if k < 3:
+        return sp.csr_matrix((3 * n, n))
+    _, j = cKDTree(positions).query(positions, k + 1, workers=workers)
+    j = j[:, 1:]
+    d = positions[j] - positions[:, None, :]  # (N, k, 3)
+    h = GRADIENT_WIDTH * search_radius[:, None]
+    w = np.exp(-np.sum(d * d, axis=-1) / (2.0 * h * h))  # (N, k)
+    wd = [w * d[:, :, axis] for axis in range(3)]
+    ridge = GRADIENT_RIDGE * search_radius**2
+    # m = sum_b w_b d_b d_b^T + ridge I (symmetric 3 x 3 per node), inverted by its adjugate:
+    # elementwise over the nodes, where a batched matrix product and solve took a second
+    m = [[(wd[r] * d[:, :, c]).sum(axis=1) + (ridge if r == c else 0.0) for c in range(3)] for r in range(3)]
+    adj = [
+        [
+            m[(c + 1) % 3][(r + 1) % 3] * m[(c + 2) % 3][(r + 2) % 3]
+            - m[(c + 1) % 3][(r + 2) % 3] * m[(c + 2) % 3][(r + 1) % 3]
+            for c in range(3)
+        ]
+        for r in range(3)
+    ]
+    det = m[0][0] * adj[0][0] + m[0][1] * adj[1][0] + m[0][2] * adj[2][0]
+    # coef[a, axis, b]: G_axis = sum_b coef (L_b - L_a), (m^-1 (w d)^T)
+    coef = (
+        np.stack([sum(adj[r][c][:, None] * wd[c] for c in range(3)) for r in range(3)], axis=1)
+        / det[:, None, None]
+    )
+    # row 3 a + axis: coef at a's k neighbours, then minus their sum at a itself
+    cols = np.concatenate(
+        [np.broadcast_to(j[:, None, :], (n, 3, k)), np.broadcast_to(np.arange(n)[:, None, None], (n, 3, 1))],
+        axis=2,
+    )
+    data = np.concatenate([coef, -coef.sum(axis=2, keepdims=True)], axis=2)
+    D = sp.csr_matrix(
+        (data.ravel(), cols.ravel(), np.arange(0, 3 * n * (k + 1) + 1, k + 1)), shape=(3 * n, n)
+    )
+    D.sum_duplicates()  # (sorted; a node at another's very position may be its own neighbour)
+    return D

@@ -109,7 +109,8 @@ _COLUMNS = {
 class NodeTable:
     """The nodes as they are being found, in the order found: per node its cell key, the number
     and sum of its collisions, a uniform sample of MEMBERS_KEPT of them (the lowest random
-    priorities), its outgoing samples, and the edge counts. Collisions and samples are merged in
+    priorities), its outgoing samples, and per edge its count and the sum of where its samples
+    collided. Collisions and samples are merged in
     (:meth:`merge`) and then dropped, so memory grows with the nodes, not with the samples.
     Everything kept is a sum or a minimum, so the table is the same whatever the order and the
     cut of the merges."""
@@ -123,7 +124,10 @@ class NodeTable:
         self._store: dict[str, np.ndarray] = {}
         self._grow(0, 0)
         self._counts = sp.csr_matrix((0, 0), dtype=np.int64)
-        self._edges: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # merged, not yet summed
+        # per edge, the fixed-point sums of where its samples collided, one matrix an axis (the
+        # counts' pattern: every sum is positive, the origin lies below every point)
+        self._landed = [sp.csr_matrix((0, 0), dtype=np.int64) for _ in range(3)]
+        self._edges: list[tuple[np.ndarray, ...]] = []  # (rows, cols, counts, sums) merged, not yet summed
         self._pending = 0
 
     def counts_by_key(self) -> sp.csr_matrix:
@@ -131,15 +135,29 @@ class NodeTable:
         order (:attr:`order`), indices sorted: the summed and the waiting edges renumbered and
         summed in one conversion (0.45 s on blender, where summing and then permuting rows and
         columns took 0.9 s)."""
+        return self._by_key(0)
+
+    def landed_by_key(self) -> np.ndarray:
+        """(E, 3) the mean of where each edge's samples collided, world units, in the order of
+        :meth:`counts_by_key`'s entries."""
+        counts = self.counts_by_key().data
+        sums = np.stack([self._by_key(1 + axis).data for axis in range(3)], axis=1)
+        return self.origin + sums * self.unit / counts[:, None]
+
+    def _by_key(self, column: int) -> sp.csr_matrix:
+        """The edges' counts (column 0) or landing sums on an axis (1 + axis), by key."""
         n = len(self)
         rank = np.empty(n, np.int64)
         rank[self.order] = np.arange(n)
-        summed = self._counts.tocoo()
-        edges = zip((summed.row, summed.col, summed.data), *self._edges, strict=True)
-        rows, cols, values = (np.concatenate(a) for a in edges)
-        counts = sp.csr_matrix((values, (rank[rows], rank[cols])), shape=(n, n))
-        counts.sort_indices()
-        return counts
+        summed = ([self._counts] + self._landed)[column].tocoo()
+        rows = np.concatenate([summed.row] + [e[0] for e in self._edges])
+        cols = np.concatenate([summed.col] + [e[1] for e in self._edges])
+        values = np.concatenate(
+            [summed.data] + [e[2] if column == 0 else e[3][:, column - 1] for e in self._edges]
+        )
+        out = sp.csr_matrix((values, (rank[rows], rank[cols])), shape=(n, n))
+        out.sort_indices()
+        return out
 
     def _sum_edges(self) -> None:
         # Merged edges wait in a list and are summed when as many wait as are summed and at least
@@ -150,9 +168,15 @@ class NodeTable:
         n = len(self)
         waiting = [np.concatenate(a) for a in zip(*self._edges, strict=True)] if self._edges else []
         self._counts.resize((n, n))
+        for m in self._landed:
+            m.resize((n, n))
         if waiting:
-            rows, cols, values = waiting
+            rows, cols, values, sums = waiting
             self._counts = self._counts + sp.csr_matrix((values, (rows, cols)), shape=(n, n))
+            self._landed = [
+                m + sp.csr_matrix((sums[:, axis], (rows, cols)), shape=(n, n))
+                for axis, m in enumerate(self._landed)
+            ]
         self._edges, self._pending = [], 0
 
     def out_edges(self, below: int) -> np.ndarray:
@@ -164,7 +188,7 @@ class NodeTable:
         n = len(self)
         self._counts.resize((n, n))
         known = np.diff(self._counts.indptr)  # distinct edges: at least this many
-        for rows, _, _ in self._edges:
+        for rows, *_ in self._edges:
             known = np.maximum(known, np.bincount(rows, minlength=n))
         few = known < below
         if not self._edges or not few.any():
@@ -213,8 +237,21 @@ class NodeTable:
 
     def merge(self, part: tuple[np.ndarray, ...]) -> None:
         """Adds a chunk's :func:`reduce_chunk` (per cell: collisions, their fixed-point sum and
-        lowest priorities; outgoing samples per start cell; edge counts)."""
-        cells, count, sums, kept_cell, kept_points, kept_pri, src, src_count, e_src, e_dst, e_count = part
+        lowest priorities; outgoing samples per start cell; edge counts and landing sums)."""
+        (
+            cells,
+            count,
+            sums,
+            kept_cell,
+            kept_points,
+            kept_pri,
+            src,
+            src_count,
+            e_src,
+            e_dst,
+            e_count,
+            e_sums,
+        ) = part
         node, src_node = self.index(cells), self.index(src)
         self.count[node] += count
         self.sum[node] += sums
@@ -228,7 +265,7 @@ class NodeTable:
             self._keep(cand, priority, points)
         # Samples and edge counts
         self.out[src_node] += src_count
-        self._edges.append((src_node[e_src], node[e_dst], e_count))
+        self._edges.append((src_node[e_src], node[e_dst], e_count, e_sums))
         self._pending += len(e_count)
         if self._pending > max(1 << 23, self._counts.nnz):
             self._sum_edges()
@@ -297,7 +334,12 @@ def reduce_chunk(keys, points, priority, src, dst, origin, radius) -> tuple[np.n
     hit = dst >= 0
     a, b = src_inv[hit], inv[dst[hit]]
     edge = a * len(cells) + b
-    edges, e_count = np.unique(edge, return_counts=True)
+    edges, e_at, e_count = np.unique(edge, return_inverse=True, return_counts=True)
+    # and per edge the fixed-point sum of where its samples collided (Graph.landing)
+    landed = fixed[dst[hit]]
+    e_sums = np.stack([np.bincount(e_at, landed[:, i], len(edges)) for i in range(3)], axis=1).astype(
+        np.int64
+    )
     return (
         cells,
         count.astype(np.int64),
@@ -310,4 +352,5 @@ def reduce_chunk(keys, points, priority, src, dst, origin, radius) -> tuple[np.n
         edges // len(cells),
         edges % len(cells),
         e_count.astype(np.int64),
+        e_sums,
     )

@@ -7,6 +7,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from .graph import GRADIENT_NODES, GRADIENT_RIDGE, GRADIENT_WIDTH
 from .volume import Volume
 
 #: Quality presets. The node radius is a fraction of the typical mean free path, since the
@@ -122,4 +123,12 @@ def build_params(volume: Volume, density_scale: float, quality: str = "default",
 #: Lighting parameters that enter the radiance key, with the version of the field's bake (its
 #: file is kept under the radiance key: a new bake must not find an old one's) and of what
 #: ``gather``'s node radiance holds (2: without the suns' direct light, precompute.without_sun).
-LIGHTING = {"samples": 16, "tol": 1e-5, "transport": "krylov", "field": 6, "gather": 2}
+#: ``landing``: how transport reads an edge where its flights landed (graph.Graph.transitions).
+LIGHTING = {
+    "samples": 16,
+    "tol": 1e-5,
+    "transport": "krylov",
+    "field": 6,
+    "gather": 2,
+    "landing": [GRADIENT_NODES, GRADIENT_WIDTH, GRADIENT_RIDGE],
+}

@@ -38,7 +38,8 @@ def transport(
     """Total in-scattered radiance per node: the Neumann series of T applied to L_d (Algorithm 1).
 
     Args:
-        C: (N, N) collision probabilities, C[a, b] = P(a flight from a collides in b).
+        C: (N, N) collision probabilities, C[a, b] = P(a flight from a collides in b): a sparse
+            matrix, or an operator with ``@`` and ``diagonal()`` (graph.Transitions).
         L_d: (N, 3) direct radiance per node and channel.
         albedo: scalar or (3,) single-scattering albedo per channel.
         max_depth: most scattering events on a path; node radiance holds paths of up to
@@ -58,7 +59,8 @@ def transport(
     albedo = np.broadcast_to(np.asarray(albedo, np.float64), (L_d.shape[1],))
     if max_depth == 0:
         return np.zeros_like(L_d), 0
-    C = sp.csr_matrix(C, dtype=np.float64)
+    if sp.issparse(C):  # (else an operator of its own: graph.Transitions)
+        C = sp.csr_matrix(C, dtype=np.float64)
     if max_depth < 0 and method == "krylov":
         return _solve(C, L_d, albedo, tol, max_iterations, cancelled)
     return _series(C, L_d, albedo, max_depth, tol, max_iterations, cancelled)
@@ -77,7 +79,7 @@ def _series(C, L_d, albedo, max_depth, tol, max_iterations, cancelled) -> tuple[
             cancelled()
         if max_depth < 0 and term.sum() <= tol * L.sum():
             break
-    return L, i
+    return np.maximum(L, 0.0), i  # (an edge read by its end's gradient may dip below zero)
 
 
 def _solve(C, L_d, albedo, tol, max_iterations, cancelled) -> tuple[np.ndarray, int]:

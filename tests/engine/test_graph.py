@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from scipy.spatial import cKDTree
 
 import cloudgraph.precompute as precompute_module
 from cloudgraph.cache import CacheStore
@@ -163,6 +164,64 @@ def test_gather_takes_the_sun_s_light_exactly_at_its_second_event(variant, tmp_p
     assert m["binned_relMAE"] < {"side": 0.03, "back": 0.05}[view]
 
 
+@pytest.mark.parametrize("view", ["side", "back"])
+def test_transport_reads_each_edge_where_its_flights_landed(variant, tmp_path, view):
+    # A flight from node a lands in node b on a's side of b; read at b's position, the light that
+    # crossed a dense cloud came out bright (the back-lit bench clouds by 2.4-4.4 % at albedo 1).
+    # Transport now reads b where the edge's flights landed, by b's gradient (Graph.transitions).
+    # A dense cloud (optical depth 2 a voxel: nodes of default quality 1.2 free paths wide)
+    # at albedo 1, where every scattering order goes through the graph.
+    from cloudgraph.render import GraphRenderer
+
+    volume, scale = dense_cloud(2.0)
+    scene = medium_scene(volume, scale, albedo=1.0, eye_dir={"side": SIDE, "back": LIGHT}[view], size=24)
+    cache = precompute(scene, volume, "default", CacheStore(tmp_path))
+    image = GraphRenderer(cache, volume, scene).render(scene.camera, 1024, 1, "gather")
+    m = bias_metrics(image, reference(scene, volume, spp=512))
+    # Measured (24^2, reference 512 spp): mean ratio 1.001 side-lit, 1.005 back-lit; each edge
+    # read at its end's position: 1.007 and 1.024.
+    assert abs(m["mean_ratio"] - 1.0) < 0.012
+    assert m["binned_relMAE"] < 0.05
+
+
+def test_transitions_read_a_linear_field_where_the_flights_landed():
+    # Transport's operator against its closed form: where node radiance is a linear function of
+    # position, T L = sum_b C[a, b] L(x_b + landing offset), the light at the landing points.
+    from cloudgraph.graph import Graph
+
+    rng = np.random.default_rng(4)
+    axis = np.arange(12, dtype=float)
+    positions = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    positions += rng.normal(0, 0.1, positions.shape)
+    n = len(positions)
+    near = cKDTree(positions).query(positions, 7)[1]  # edges to each node's 6 nearest and itself
+    counts = sp.csr_matrix(
+        (rng.integers(1, 9, near.size), near.ravel(), np.arange(0, near.size + 1, 7)), (n, n)
+    )
+    counts.sum_duplicates()
+    landing = rng.uniform(-0.4, 0.4, (counts.nnz, 3)).astype(np.float32)
+    out = np.asarray(counts.sum(axis=1)).ravel() + 5  # (some escape)
+    graph = Graph(positions.astype(np.float32), np.full(n, 1.5, np.float32), out, counts, {}, landing)
+    slope = np.array([0.3, -0.2, 0.1])
+    L = 5.0 + positions @ slope
+    T = graph.transitions()
+    C = T.C  # (its entries in the counts' order)
+    starts = np.repeat(np.arange(n), np.diff(counts.indptr))
+    at_landing = L[counts.indices] + landing @ slope
+    expected = np.bincount(starts, C.data * at_landing, n)
+    read = T @ L
+    correction = expected - C @ L
+    inner = np.all((positions > 1.5) & (positions < 9.5), axis=1)  # (a plane fits the boundary too)
+    assert np.abs(correction[inner]).mean() > 0.02
+    # (the gradients' ridge shrinks them, here by 5 %: measured 0.067 of the largest correction;
+    # read at the ends' positions, it is all of it)
+    assert np.abs(read - expected)[inner].max() < 0.1 * np.abs(correction[inner]).max()
+    np.testing.assert_allclose(T.diagonal(), (T.C + T.S @ T.D).diagonal(), rtol=1e-12, atol=1e-15)
+    # without landing offsets, the collision probabilities alone
+    bare = Graph(graph.positions, graph.search_radius, out, counts, {})
+    np.testing.assert_allclose(bare.transitions() @ L, graph.collision_matrix() @ L, rtol=1e-12)
+
+
 def two_density_box():
     """32x16x16 voxels of side 1: sigma_t 1 for x < 16, 1/16 beyond (optical depth 1 across)."""
     density = np.ones((32, 16, 16), np.float32)
@@ -286,9 +345,9 @@ def test_changing_albedo_reuses_the_graph_and_recomputes_only_the_radiance(varia
     assert lit.mean() > 0.9
     assert np.all(dark.radiance[lit] < bright.radiance[lit]) and np.all(dark.radiance[~lit] == 0)
     # and exactly what the transport equation gives: the nodes' direct light (the same chunks
-    # again), solved with a direct sparse solver. The solver stops at 1e-5 of the total and the
-    # file keeps 8 significant bits (0.4 %); measured: 0.21 % of the largest value, 0.38 % at most
-    # relative.
+    # again), solved with a direct sparse solver, each edge read where its flights landed
+    # (Graph.transitions: C + S D). The solver stops at 1e-5 of the total and the file keeps 8
+    # significant bits (0.4 %); measured: 0.21 % of the largest value, 0.38 % at most relative.
     from cloudgraph.build import GraphBuilder
     from cloudgraph.chunks import placed
     from cloudgraph.lights import Lights
@@ -300,7 +359,8 @@ def test_changing_albedo_reuses_the_graph_and_recomputes_only_the_radiance(varia
     inputs = lighting_inputs(dark.graph.positions, Lights.of(scene), params)
     lit = local_chunks(GraphBuilder(volume, 0.5, params), "lighting", inputs)
     L_d = placed(lit, dark.graph.n_nodes, 3, np.float64)
-    C = sp.csc_matrix(dark.graph.collision_matrix())
+    T = dark.graph.transitions()
+    C = sp.csc_matrix(T.C + T.S @ T.D)
     eye = sp.identity(C.shape[0], format="csc")
     expected = spla.splu(eye - 0.6 * C).solve(L_d)
     np.testing.assert_allclose(dark.radiance, expected, rtol=4e-3, atol=1e-4 * expected.max())
@@ -355,9 +415,9 @@ def test_the_graph_file_is_compact_and_exact_where_transport_needs_it(sphere, mo
 
     cache, volume, scene = sphere["cache"], sphere["volume"], sphere["scene"]
     store, g = cache.store, cache.graph
-    # Under 2 bytes an edge, nodes included (measured 1.75); the first format took 12 an edge and
-    # 32 a node
-    assert store.graph_path(cache.keys["graph_key"]).stat().st_size < 2.0 * g.counts.nnz
+    # Under 4 bytes an edge, nodes included (measured 3.74: 1.75 without where each edge's
+    # flights landed); the first format took 12 an edge and 32 a node
+    assert store.graph_path(cache.keys["graph_key"]).stat().st_size < 4.0 * g.counts.nnz
     # Counts and samples exact; positions to half a step of 1/65535 of the nodes' box; search
     # ranges to float16 (2^-11)
     built = build_graph(volume, sphere["sigma"], build_params(volume, sphere["sigma"], "draft"), local_chunks)
@@ -367,10 +427,23 @@ def test_the_graph_file_is_compact_and_exact_where_transport_needs_it(sphere, mo
     step = (built.positions.max(axis=0) - built.positions.min(axis=0)) / 65535
     assert np.all(np.abs(back.positions - built.positions) <= 0.5 * step * (1 + 1e-3))
     np.testing.assert_allclose(back.search_radius, built.search_radius, rtol=2.0**-11)
+    # where an edge's flights landed: to half a step of 1/LANDING_STEPS of its end's search range
+    # (its float16 range: 2^-11 more); they land within a range of the end, on the start's side
+    from cloudgraph.graph_file import LANDING_STEPS
+
+    ends = built.counts.indices
+    assert back.landing.shape == built.landing.shape == (built.counts.nnz, 3)
+    error = np.abs(back.landing - built.landing) / built.search_radius[ends, None]
+    assert error.max() <= 0.5 / LANDING_STEPS + 1e-3
+    assert np.abs(built.landing).max() < built.search_radius[ends].max()
+    starts = np.repeat(np.arange(built.n_nodes), np.diff(built.counts.indptr))
+    towards = np.sum(built.landing * (built.positions[starts] - built.positions[ends]), axis=1)
+    assert (towards[starts != ends] > 0).mean() > 0.7  # (measured 0.75; a random side: 0.5)
     # what a precompute goes on with, made without packing, is what the file gives back
     stored = stored_graph(built)
     np.testing.assert_array_equal(stored.positions, back.positions)
     np.testing.assert_array_equal(stored.search_radius, back.search_radius)
+    np.testing.assert_array_equal(stored.landing, back.landing)
     # and a graph_file chunk, run on the graph's arrays, makes the file's bytes
     builder = GraphBuilder(volume, sphere["sigma"], build_params(volume, sphere["sigma"], "draft"))
     (data,) = run_chunk(builder, "graph_file", 0, built.to_arrays())
@@ -534,9 +607,11 @@ def test_the_node_table_holds_what_all_the_samples_at_once_give():
         hit = dst >= 0
         a, b = np.searchsorted(cells, src[hit]), np.searchsorted(cells, keys[dst[hit]])
         edges = sp.csr_matrix((np.ones(hit.sum()), (a, b)), (n, n))
-        return cells, count, sums, kept, out, edges
+        landed = [sp.csr_matrix((fixed[dst[hit], axis].astype(float), (a, b)), (n, n)) for axis in range(3)]
+        return cells, count, sums, kept, out, edges, landed
 
-    cells, count, sums, kept, out, edges = expected(chunks)
+    cells, count, sums, kept, out, edges, landed = expected(chunks)
+
     by_key = table.order
     assert len(table) == len(cells) and np.array_equal(table.keys[by_key], cells)
     np.testing.assert_array_equal(table.count[by_key], count)
@@ -545,6 +620,9 @@ def test_the_node_table_holds_what_all_the_samples_at_once_give():
     np.testing.assert_array_equal(table.out[by_key], out)
     counts = table.counts_by_key()
     assert (counts != edges).nnz == 0 and counts.has_sorted_indices
+    # and per edge the mean of where its samples collided, in the counts' order
+    mean = np.stack([m.tocsr().data for m in landed], axis=1) / edges.tocsr().data[:, None]
+    np.testing.assert_allclose(table.landed_by_key(), origin + mean * (radius / FIXED_POINT), rtol=1e-12)
     # the kept points are those of the kept priorities
     pri = np.concatenate([c[2] for c in chunks])
     pts = np.concatenate([c[1] for c in chunks]).astype(np.float32)
@@ -558,7 +636,7 @@ def test_the_node_table_holds_what_all_the_samples_at_once_give():
     assert half_table._edges  # still waiting
     below = 9
     got = half_table.out_edges(below)
-    h_cells, *_, h_edges = expected(half)
+    h_cells, *_, h_edges, _ = expected(half)
     exact = np.diff(h_edges.indptr)[np.searchsorted(h_cells, half_table.keys)]
     assert np.array_equal(np.minimum(got, below), np.minimum(exact, below))
     assert (exact < below).sum() > 50 and (exact >= below).sum() > 50  # both kinds were tried
