@@ -149,6 +149,10 @@ class Transitions:
             out += self.S @ (self.D @ x)
         return out
 
+    def correction(self, x: np.ndarray) -> np.ndarray:
+        """(T - C) x: what reading the edges where their flights landed adds."""
+        return self.S @ (self.D @ x) if self.S is not None else np.zeros_like(x)
+
     def diagonal(self) -> np.ndarray:
         diag = self.C.diagonal()
         if self.S is not None:  # (S D)[a, a] = sum_j S[a, j] D[j, a]

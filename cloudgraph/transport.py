@@ -9,6 +9,13 @@ series is the solution of the linear system
 which a Krylov method (BiCGSTAB, Jacobi-preconditioned) reaches in far fewer products than the
 series, whose terms shrink only as fast as the chance of escaping: slowly in a thick medium of
 albedo 1. The series stays as the fallback should the solver not converge.
+
+The graph's edges are read where their flights landed (graph.Graph.transitions: T = C + K, K by
+the nodes' radiance gradients). With unbounded depth K is taken to first order, by a second solve
+of C alone: L' = L_0 + (I - aC)^-1 aK L_0, L_0 = (I - aC)^-1 L_d. Solved with K inside, the
+system need not converge at albedo 1 (BiCGSTAB broke down on the bench's dense cloud, GMRES
+stalled at a residual of 0.6): C's spectral radius is all but 1 there, and K's gradients lift
+some modes of noise past it.
 """
 
 from __future__ import annotations
@@ -61,9 +68,25 @@ def transport(
         return np.zeros_like(L_d), 0
     if sp.issparse(C):  # (else an operator of its own: graph.Transitions)
         C = sp.csr_matrix(C, dtype=np.float64)
-    if max_depth < 0 and method == "krylov":
-        return _solve(C, L_d, albedo, tol, max_iterations, cancelled)
-    return _series(C, L_d, albedo, max_depth, tol, max_iterations, cancelled)
+    if max_depth >= 0:  # (a few terms: K inside them grows nothing)
+        L, products = _series(C, L_d, albedo, max_depth, tol, max_iterations, cancelled)
+        return np.maximum(L, 0.0), products
+    correction = getattr(C, "correction", None)
+    if correction is None:
+        return _unbounded(C, L_d, albedo, tol, max_iterations, method, cancelled)
+    # T = C + K (graph.Transitions), K to first order (the module docstring)
+    L, products = _unbounded(C.C, L_d, albedo, tol, max_iterations, method, cancelled, clamp=False)
+    dL, more = _unbounded(
+        C.C, albedo[None, :] * correction(L), albedo, tol, max_iterations, method, cancelled, clamp=False
+    )
+    return np.maximum(L + dL, 0.0), products + more + 1
+
+
+def _unbounded(C, L_d, albedo, tol, max_iterations, method, cancelled, clamp=True) -> tuple[np.ndarray, int]:
+    if method == "krylov":
+        return _solve(C, L_d, albedo, tol, max_iterations, cancelled, clamp)
+    L, products = _series(C, L_d, albedo, -1, tol, max_iterations, cancelled)
+    return (np.maximum(L, 0.0) if clamp else L), products
 
 
 def _series(C, L_d, albedo, max_depth, tol, max_iterations, cancelled) -> tuple[np.ndarray, int]:
@@ -77,13 +100,14 @@ def _series(C, L_d, albedo, max_depth, tol, max_iterations, cancelled) -> tuple[
         i += 1
         if cancelled is not None and i % 16 == 0:
             cancelled()
-        if max_depth < 0 and term.sum() <= tol * L.sum():
+        if max_depth < 0 and np.abs(term).sum() <= tol * np.abs(L).sum():
             break
-    return np.maximum(L, 0.0), i  # (an edge read by its end's gradient may dip below zero)
+    return L, i
 
 
-def _solve(C, L_d, albedo, tol, max_iterations, cancelled) -> tuple[np.ndarray, int]:
-    """(I - albedo_c C) L'_c = L_d,c per channel by BiCGSTAB; equal channels are solved once."""
+def _solve(C, L_d, albedo, tol, max_iterations, cancelled, clamp=True) -> tuple[np.ndarray, int]:
+    """(I - albedo_c C) L'_c = L_d,c per channel by BiCGSTAB; equal channels are solved once.
+    ``clamp``: radiance, clamped at 0 (else a correction, of either sign)."""
     n = C.shape[0]
     L = np.zeros_like(L_d)
     products = 0
@@ -115,6 +139,6 @@ def _solve(C, L_d, albedo, tol, max_iterations, cancelled) -> tuple[np.ndarray, 
             log.warning("BiCGSTAB did not converge (info %s); summing the series instead", info)
             x, k = _series(C, b[:, None], np.array([a]), -1, tol, max_iterations, cancelled)
             x, products = x[:, 0], products + k
-        L[:, c] = np.maximum(x, 0.0)  # radiance; the solver's residual may dip below zero
+        L[:, c] = np.maximum(x, 0.0) if clamp else x  # (the solver's residual may dip below zero)
         solved[key] = L[:, c]
     return L, products
