@@ -3,9 +3,10 @@ cloud's back-lit bias is node size"): each node's radiance extrapolated to the l
 its gradient, L(p) = sum_a w_a (L_a + G_a (p - c_a)) / sum_a w_a, in place of Eq. 4.25's
 sum_a w_a L_a / sum_a w_a (c_a: the node's position, the mean of its collisions).
 
-G_a is a weighted least-squares fit over the node's ``k`` nearest nodes b,
-minimising sum_b w_b (L_b - L_a - G (c_b - c_a))^2 with w_b Gaussian in the distance
-(``width`` search ranges), a linear operator on the radiance: three sparse (N, N) matrices.
+G_a is transport's gradient (cloudgraph.graph.gradient_operators: a weighted least-squares
+plane through the node's nearest nodes, a linear operator on the radiance; the figures of
+bench/results/node-gradient-20261203.md were taken with 16 nodes at two search ranges, before
+transport read each edge where its flights landed).
 
     .venv/bin/python bench/node_gradient.py [SCENE ...]
 
@@ -19,8 +20,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.spatial import cKDTree
 
 from cloudgraph.mitsuba_scene import set_variant
 
@@ -31,29 +30,12 @@ import mitsuba as mi  # noqa: E402
 
 from bench.harness import CONVERGED_SPP, LIGHT, _scene, bench_scenes, cameras, reference  # noqa: E402
 from cloudgraph.cache import CacheStore  # noqa: E402
+from cloudgraph.graph import gradient_operators  # noqa: E402
 from cloudgraph.metrics import bias_metrics  # noqa: E402
 from cloudgraph.precompute import precompute  # noqa: E402
 from cloudgraph.render import GraphRenderer  # noqa: E402
 from cloudgraph.spatial import NodeGrid  # noqa: E402
 from cloudgraph.tracing import to_jit  # noqa: E402
-
-
-def gradient_operators(positions: np.ndarray, radius: np.ndarray, k: int = 16, width: float = 2.0) -> list:
-    """Three sparse (N, N) matrices D_x, D_y, D_z: G = (D_x L, D_y L, D_z L) (module docstring)."""
-    n = len(positions)
-    _, j = cKDTree(positions).query(positions, k + 1)
-    j = j[:, 1:]
-    d = positions[j] - positions[:, None, :]  # (N, k, 3)
-    h = radius[:, None]
-    w = np.exp(-np.sum(d**2, -1) / (2 * (width * h) ** 2))
-    m = np.einsum("nk,nki,nkj->nij", w, d, d) + 0.05 * h[:, :, None] ** 2 * np.eye(3)  # (regularised)
-    coef = np.einsum("nij,nk,nkj->nki", np.linalg.inv(m), w, d)  # G = sum_b coef_b (L_b - L_a)
-    rows = np.repeat(np.arange(n), k)
-    ops = []
-    for axis in range(3):
-        a = sp.csr_matrix((coef[:, :, axis].ravel(), (rows, j.ravel())), shape=(n, n))
-        ops.append((a - sp.diags(np.asarray(a.sum(axis=1)).ravel())).tocsr())
-    return ops
 
 
 class GradientGrid(NodeGrid):
@@ -64,8 +46,9 @@ class GradientGrid(NodeGrid):
     @classmethod
     def of(cls, grid: NodeGrid, positions, search_radius, radiance) -> "GradientGrid":
         out = cls(**{f: getattr(grid, f) for f in grid.__dataclass_fields__})
-        ops = gradient_operators(positions.astype(np.float64), search_radius.astype(np.float64))
-        g = [op @ radiance.astype(np.float64) for op in ops]  # (N, 3) each: dL/dx, dL/dy, dL/dz
+        D = gradient_operators(positions.astype(np.float64), search_radius.astype(np.float64))
+        grad = (D @ radiance.astype(np.float64)).reshape(len(positions), 3, -1)
+        g = [grad[:, axis] for axis in range(3)]  # (N, 3) each: dL/dx, dL/dy, dL/dz
         g_dot_c = sum(g[axis] * positions[:, axis : axis + 1] for axis in range(3))
         out.terms = [to_jit(mi.Color3f, a.astype(np.float32)) for a in (*g, g_dot_c)]
         return out
