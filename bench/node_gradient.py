@@ -46,7 +46,7 @@ class GradientGrid(NodeGrid):
     @classmethod
     def of(cls, grid: NodeGrid, positions, search_radius, radiance) -> "GradientGrid":
         out = cls(**{f: getattr(grid, f) for f in grid.__dataclass_fields__})
-        D = gradient_operators(positions.astype(np.float64), search_radius.astype(np.float64))
+        D = gradient_operators(positions.astype(np.float64), search_radius.astype(np.float64), 16, 2.0, 0.05)
         grad = (D @ radiance.astype(np.float64)).reshape(len(positions), 3, -1)
         g = [grad[:, axis] for axis in range(3)]  # (N, 3) each: dL/dx, dL/dy, dL/dz
         g_dot_c = sum(g[axis] * positions[:, axis : axis + 1] for axis in range(3))

@@ -23,15 +23,6 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-#: The radiance gradient of a node: a weighted least-squares plane through its GRADIENT_NODES
-#: nearest nodes, weighted by a Gaussian of GRADIENT_WIDTH search ranges (regularised by
-#: GRADIENT_RIDGE search ranges squared), as a linear operator on the radiance. On the bench's
-#: thick, dense and held-out clouds 8 nodes at one range and 16 at two read the same image means
-#: within 0.3 % (docs/measurements.md, "Where a flight lands"); 8 take half the time.
-GRADIENT_NODES = 8
-GRADIENT_WIDTH = 1.0
-GRADIENT_RIDGE = 0.05
-
 
 @dataclass
 class Graph:
@@ -66,11 +57,11 @@ class Graph:
         inv = np.divide(1.0, self.out_samples, out=np.zeros(self.n_nodes), where=self.out_samples > 0)
         return sp.csr_matrix(sp.diags(inv) @ self.counts)
 
-    def transitions(self, workers: int = 1) -> Transitions:
+    def transitions(self, gradient: dict, workers: int = 1) -> Transitions:
         """The collision probabilities with each edge read where its flights landed (the module
         docstring): T x = C x + sum_axis S_axis (D_axis x), S_axis = C times the landing offsets
-        on that axis, D_axis the nodes' gradient operator (:func:`gradient_operators`, its k-d tree
-        queried on ``workers`` threads)."""
+        on that axis, D_axis the nodes' gradient operator (:func:`gradient_operators` of the
+        ``gradient`` parameters, params.GRADIENT; its k-d tree queried on ``workers`` threads)."""
         C = self.collision_matrix()
         C.sort_indices()
         if self.landing is None or not C.nnz:
@@ -79,7 +70,10 @@ class Graph:
         counts.sort_indices()
         assert np.array_equal(counts.indptr, C.indptr) and np.array_equal(counts.indices, C.indices)
         D = gradient_operators(
-            self.positions.astype(np.float64), self.search_radius.astype(np.float64), workers
+            self.positions.astype(np.float64),
+            self.search_radius.astype(np.float64),
+            **gradient,
+            workers=workers,
         )
         # S_x, S_y, S_z side by side (N, 3N): column 3 b + axis, against D's rows stacked alike
         n, e = C.shape[0], C.nnz
@@ -160,23 +154,25 @@ class Transitions:
         return diag
 
 
-def gradient_operators(positions: np.ndarray, search_radius: np.ndarray, workers: int = 1) -> sp.csr_matrix:
+def gradient_operators(
+    positions: np.ndarray, search_radius: np.ndarray, nodes: int, width: float, ridge: float, workers: int = 1
+) -> sp.csr_matrix:
     """(3N, N) sparse: row 3 a + axis of (D L) is node a's radiance gradient on that axis, the
-    weighted least-squares plane through its GRADIENT_NODES nearest nodes b, minimising
-    sum_b w_b (L_b - L_a - G . (c_b - c_a))^2, w_b a Gaussian of GRADIENT_WIDTH search ranges
-    (c: the positions, (N, 3); ``search_radius`` (N,)). A linear L's gradient to within the ridge's
-    shrinkage (about 1 %)."""
+    weighted least-squares plane through its ``nodes`` nearest nodes b, minimising
+    sum_b w_b (L_b - L_a - G . (c_b - c_a))^2 + ridge R_a^2 |G|^2, w_b a Gaussian of ``width``
+    search ranges R (c: the positions, (N, 3); ``search_radius`` (N,)). A linear L's gradient, to
+    within the ridge's shrinkage (1-5 %)."""
     n = len(positions)
-    k = min(GRADIENT_NODES, n - 1)
+    k = min(nodes, n - 1)
     if k < 3:
         return sp.csr_matrix((3 * n, n))
     _, j = cKDTree(positions).query(positions, k + 1, workers=workers)
     j = j[:, 1:]
     d = positions[j] - positions[:, None, :]  # (N, k, 3)
-    h = GRADIENT_WIDTH * search_radius[:, None]
+    h = width * search_radius[:, None]
     w = np.exp(-np.sum(d * d, axis=-1) / (2.0 * h * h))  # (N, k)
     wd = [w * d[:, :, axis] for axis in range(3)]
-    ridge = GRADIENT_RIDGE * search_radius**2
+    ridge = ridge * search_radius**2
     # m = sum_b w_b d_b d_b^T + ridge I (symmetric 3 x 3 per node), inverted by its adjugate:
     # elementwise over the nodes, where a batched matrix product and solve took a second
     m = [[(wd[r] * d[:, :, c]).sum(axis=1) + (ridge if r == c else 0.0) for c in range(3)] for r in range(3)]

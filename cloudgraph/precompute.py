@@ -37,7 +37,7 @@ from .graph_file import (
     unpack_radiance,
 )
 from .lights import Lights, component_scenes
-from .params import LIGHTING, BuildParams, build_params
+from .params import GRADIENT, LIGHTING, BuildParams, build_params
 from .scene import Scene
 from .stages import local_chunks
 from .tracing import cpu_threads
@@ -229,7 +229,7 @@ def precompute(
         t_light = time.perf_counter() - t_light
         progress("transport", 0.85)
         t0 = time.perf_counter()
-        C, depth = graph.transitions(cpu_threads()), scene.render.max_depth
+        C, depth = graph.transitions(GRADIENT, cpu_threads()), scene.render.max_depth
         albedo = np.tile(graph_albedo, lights.count)
 
         def still_wanted():  # progress() raises when the job was cancelled

@@ -188,6 +188,7 @@ def test_transitions_read_a_linear_field_where_the_flights_landed():
     # Transport's operator against its closed form: where node radiance is a linear function of
     # position, T L = sum_b C[a, b] L(x_b + landing offset), the light at the landing points.
     from cloudgraph.graph import Graph
+    from cloudgraph.params import GRADIENT
 
     rng = np.random.default_rng(4)
     axis = np.arange(12, dtype=float)
@@ -204,7 +205,7 @@ def test_transitions_read_a_linear_field_where_the_flights_landed():
     graph = Graph(positions.astype(np.float32), np.full(n, 1.5, np.float32), out, counts, {}, landing)
     slope = np.array([0.3, -0.2, 0.1])
     L = 5.0 + positions @ slope
-    T = graph.transitions()
+    T = graph.transitions(GRADIENT)
     C = T.C  # (its entries in the counts' order)
     starts = np.repeat(np.arange(n), np.diff(counts.indptr))
     at_landing = L[counts.indices] + landing @ slope
@@ -219,7 +220,7 @@ def test_transitions_read_a_linear_field_where_the_flights_landed():
     np.testing.assert_allclose(T.diagonal(), (T.C + T.S @ T.D).diagonal(), rtol=1e-12, atol=1e-15)
     # without landing offsets, the collision probabilities alone
     bare = Graph(graph.positions, graph.search_radius, out, counts, {})
-    np.testing.assert_allclose(bare.transitions() @ L, graph.collision_matrix() @ L, rtol=1e-12)
+    np.testing.assert_allclose(bare.transitions(GRADIENT) @ L, graph.collision_matrix() @ L, rtol=1e-12)
 
 
 def two_density_box():
@@ -352,7 +353,7 @@ def test_changing_albedo_reuses_the_graph_and_recomputes_only_the_radiance(varia
     from cloudgraph.build import GraphBuilder
     from cloudgraph.chunks import placed
     from cloudgraph.lights import Lights
-    from cloudgraph.params import build_params
+    from cloudgraph.params import GRADIENT, build_params
     from cloudgraph.precompute import lighting_inputs
     from cloudgraph.stages import local_chunks
 
@@ -360,7 +361,7 @@ def test_changing_albedo_reuses_the_graph_and_recomputes_only_the_radiance(varia
     inputs = lighting_inputs(dark.graph.positions, Lights.of(scene), params)
     lit = local_chunks(GraphBuilder(volume, 0.5, params), "lighting", inputs)
     L_d = placed(lit, dark.graph.n_nodes, 3, np.float64)
-    T = dark.graph.transitions()
+    T = dark.graph.transitions(GRADIENT)
     solve = spla.splu(sp.identity(T.shape[0], format="csc") - 0.6 * sp.csc_matrix(T.C)).solve
     first = solve(L_d)
     expected = np.maximum(first + solve(0.6 * (T.S @ (T.D @ first))), 0.0)
