@@ -131,27 +131,18 @@ def compact_uint(a: np.ndarray) -> np.ndarray:
 
 class Transitions:
     """The graph's transition operator for transport (:meth:`Graph.transitions`): ``T @ x`` for
-    (N,) or (N, K) x, and its ``diagonal()`` (a Jacobi preconditioner's). ``S`` (N, 3N) and
-    ``D`` (3N, N): the landing offsets and the gradients, axes interleaved (None: C alone)."""
+    (N,) or (N, K) x, and ``correction(x)``, (T - C) x. ``S`` (N, 3N) and ``D`` (3N, N): the
+    landing offsets and the gradients, axes interleaved (None: C alone)."""
 
     def __init__(self, C: sp.csr_matrix, S: sp.csr_matrix | None = None, D: sp.csr_matrix | None = None):
         self.C, self.S, self.D, self.shape = C, S, D, C.shape
 
     def __matmul__(self, x: np.ndarray) -> np.ndarray:
-        out = self.C @ x
-        if self.S is not None:
-            out += self.S @ (self.D @ x)
-        return out
+        return self.C @ x + self.correction(x)
 
     def correction(self, x: np.ndarray) -> np.ndarray:
         """(T - C) x: what reading the edges where their flights landed adds."""
         return self.S @ (self.D @ x) if self.S is not None else np.zeros_like(x)
-
-    def diagonal(self) -> np.ndarray:
-        diag = self.C.diagonal()
-        if self.S is not None:  # (S D)[a, a] = sum_j S[a, j] D[j, a]
-            diag = diag + np.asarray(self.S.multiply(self.D.T.tocsr()).sum(axis=1)).ravel()
-        return diag
 
 
 def gradient_operators(

@@ -46,7 +46,7 @@ def transport(
 
     Args:
         C: (N, N) collision probabilities, C[a, b] = P(a flight from a collides in b): a sparse
-            matrix, or an operator with ``@`` and ``diagonal()`` (graph.Transitions).
+            matrix, or graph.Transitions (``@``, and ``correction`` with C beside it).
         L_d: (N, 3) direct radiance per node and channel.
         albedo: scalar or (3,) single-scattering albedo per channel.
         max_depth: most scattering events on a path; node radiance holds paths of up to
