@@ -309,7 +309,7 @@ def build_graph(
     out_samples = table.out[by_key]
     counts = table.counts_by_key()
     # where each edge's samples collided, from its end node's position (Graph.landing)
-    landing = (table.landed_by_key() - nodes[counts.indices]).astype(np.float32)
+    landing = (table.landed_by_key(counts) - nodes[counts.indices]).astype(np.float32)
     search = placed(ranges, n, 1)[:, 0]
     t_group = time.perf_counter() - t0
 

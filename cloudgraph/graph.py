@@ -76,7 +76,7 @@ class Graph:
             workers=workers,
         )
         # S_x, S_y, S_z side by side (N, 3N): column 3 b + axis, against D's rows stacked alike
-        n, e = C.shape[0], C.nnz
+        n = C.shape[0]
         S = sp.csr_matrix(
             (
                 (C.data[:, None] * self.landing).ravel(),
@@ -85,7 +85,7 @@ class Graph:
             ),
             shape=(n, 3 * n),
         )
-        return Transitions(C, S, D) if e else Transitions(C)
+        return Transitions(C, S, D)
 
     def to_arrays(self) -> dict:
         """The graph as plain arrays (the inputs of a ``graph_file`` chunk, GraphBuilder); the

@@ -110,8 +110,8 @@ class NodeTable:
     """The nodes as they are being found, in the order found: per node its cell key, the number
     and sum of its collisions, a uniform sample of MEMBERS_KEPT of them (the lowest random
     priorities), its outgoing samples, and per edge its count and the sum of where its samples
-    collided. Collisions and samples are merged in
-    (:meth:`merge`) and then dropped, so memory grows with the nodes, not with the samples.
+    collided. Collisions and samples are merged in (:meth:`merge`) and then dropped, so memory
+    grows with the nodes, not with the samples.
     Everything kept is a sum or a minimum, so the table is the same whatever the order and the
     cut of the merges."""
 
@@ -137,12 +137,11 @@ class NodeTable:
         columns took 0.9 s)."""
         return self._by_key(0)
 
-    def landed_by_key(self) -> np.ndarray:
+    def landed_by_key(self, counts: sp.csr_matrix) -> np.ndarray:
         """(E, 3) the mean of where each edge's samples collided, world units, in the order of
-        :meth:`counts_by_key`'s entries."""
-        counts = self.counts_by_key().data
+        the entries of ``counts``, :meth:`counts_by_key` (made once: a conversion of every edge)."""
         sums = np.stack([self._by_key(1 + axis).data for axis in range(3)], axis=1)
-        return self.origin + sums * self.unit / counts[:, None]
+        return self.origin + sums * self.unit / counts.data[:, None]
 
     def _by_key(self, column: int) -> sp.csr_matrix:
         """The edges' counts (column 0) or landing sums on an axis (1 + axis), by key."""

@@ -623,7 +623,9 @@ def test_the_node_table_holds_what_all_the_samples_at_once_give():
     assert (counts != edges).nnz == 0 and counts.has_sorted_indices
     # and per edge the mean of where its samples collided, in the counts' order
     mean = np.stack([m.tocsr().data for m in landed], axis=1) / edges.tocsr().data[:, None]
-    np.testing.assert_allclose(table.landed_by_key(), origin + mean * (radius / FIXED_POINT), rtol=1e-12)
+    np.testing.assert_allclose(
+        table.landed_by_key(counts), origin + mean * (radius / FIXED_POINT), rtol=1e-12
+    )
     # the kept points are those of the kept priorities
     pri = np.concatenate([c[2] for c in chunks])
     pts = np.concatenate([c[1] for c in chunks]).astype(np.float32)
