@@ -140,6 +140,30 @@ def reference(bs: BenchScene, scene: Scene, spp: int, cache_dir: Path) -> np.nda
     return image
 
 
+#: The bench's caches and references, beside this file (``cloudgraph bench --parts`` keeps them)
+BENCH_DIR = Path(__file__).resolve().parent
+
+
+def dense_cases(names: list[str] | None = None):
+    """The ``--parts`` scenes' all-orders cases (default: the dense, thick and held-out thick
+    clouds), each view and albedo 1 and 0.8: yields (bench scene, view, albedo, scene, its
+    ``default`` cache in bench/cache, its 1024-spp RR-free volpath reference)."""
+    store = CacheStore(BENCH_DIR / "cache")
+    for bs in bench_scenes(names or ["dense", "thick", "holdout_thick"]):
+        for view, camera in cameras(bs.volume, LIGHT, 64).items():
+            for albedo in (1.0, 0.8):
+                scene = _scene(bs, camera, albedo, 16, seed=0)
+                cache = precompute(scene, bs.volume, "default", store)
+                yield (
+                    bs,
+                    view,
+                    albedo,
+                    scene,
+                    cache,
+                    reference(bs, scene, 1024, BENCH_DIR / "reference-cache"),
+                )
+
+
 def volpath_equal_error(
     bs: BenchScene, scene: Scene, ref: np.ndarray, target_mae: float, rr: bool, max_spp: int
 ) -> dict:

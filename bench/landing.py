@@ -11,7 +11,6 @@ per scene (default dense thick holdout_thick), view and albedo: binned relMAE / 
 
 import dataclasses
 import sys
-from pathlib import Path
 
 import numpy as np
 
@@ -21,48 +20,38 @@ set_variant()
 
 import mitsuba as mi  # noqa: E402
 
-from bench.harness import CONVERGED_SPP, LIGHT, _scene, bench_scenes, cameras, reference  # noqa: E402
+from bench.harness import CONVERGED_SPP, dense_cases  # noqa: E402
 from cloudgraph.build import GraphBuilder  # noqa: E402
-from cloudgraph.cache import CacheStore  # noqa: E402
 from cloudgraph.chunks import placed  # noqa: E402
 from cloudgraph.lights import Lights  # noqa: E402
 from cloudgraph.metrics import bias_metrics  # noqa: E402
 from cloudgraph.params import LIGHTING, build_params  # noqa: E402
-from cloudgraph.precompute import lighting_inputs, precompute, without_sun  # noqa: E402
+from cloudgraph.precompute import lighting_inputs, without_sun  # noqa: E402
 from cloudgraph.render import GraphRenderer  # noqa: E402
 from cloudgraph.stages import local_chunks  # noqa: E402
 from cloudgraph.tracing import to_jit  # noqa: E402
 from cloudgraph.transport import transport  # noqa: E402
 
 if __name__ == "__main__":
-    refs = Path(__file__).resolve().parent / "reference-cache"
-    store = CacheStore(Path(__file__).resolve().parent / "cache")
     print("| scene, view, albedo | each edge read where its flights landed | read at its end |")
     print("|---|---|---|")
-    for bs in bench_scenes(sys.argv[1:] or ["dense", "thick", "holdout_thick"]):
+    for bs, view, albedo, scene, cache, ref in dense_cases(sys.argv[1:]):
         params = build_params(bs.volume, bs.density_scale, "default")
         builder = GraphBuilder(bs.volume, bs.density_scale, params)
-        for view, camera in cameras(bs.volume, LIGHT, 64).items():
-            for albedo in (1.0, 0.8):
-                scene = _scene(bs, camera, albedo, 16, seed=0)
-                cache = precompute(scene, bs.volume, "default", store)
-                ref = reference(bs, scene, 1024, refs)
-                lights = Lights.of(scene)
-                graph = cache.graph
-                lit = local_chunks(builder, "lighting", lighting_inputs(graph.positions, lights, params))
-                L_d = placed(lit, graph.n_nodes, 3, np.float64)
-                L = transport(
-                    graph.collision_matrix(), L_d, np.asarray(scene.medium.albedo_rgb()), -1, LIGHTING["tol"]
-                )[0]
-                at_end = without_sun(L, L_d, lights, -1).astype(np.float32)
-                cells = []
-                for radiance in (cache.radiance_gather, at_end):
-                    renderer = GraphRenderer(cache, bs.volume, scene)
-                    integrator = renderer.integrator("gather")
-                    integrator.grid = dataclasses.replace(
-                        integrator.grid, radiance=to_jit(mi.Color3f, radiance)
-                    )
-                    renderer._scenes.clear()  # (a new kernel)
-                    m = bias_metrics(renderer.render(scene.camera, CONVERGED_SPP, 1, "gather"), ref)
-                    cells.append(f"{100 * m['binned_relMAE']:.2f} % / {m['mean_ratio']:.3f}")
-                print(f"| {bs.name}, {view}, {albedo:g} | {cells[0]} | {cells[1]} |", flush=True)
+        lights = Lights.of(scene)
+        graph = cache.graph
+        lit = local_chunks(builder, "lighting", lighting_inputs(graph.positions, lights, params))
+        L_d = placed(lit, graph.n_nodes, 3, np.float64)
+        L = transport(
+            graph.collision_matrix(), L_d, np.asarray(scene.medium.albedo_rgb()), -1, LIGHTING["tol"]
+        )[0]
+        at_end = without_sun(L, L_d, lights, -1).astype(np.float32)
+        cells = []
+        for radiance in (cache.radiance_gather, at_end):
+            renderer = GraphRenderer(cache, bs.volume, scene)
+            integrator = renderer.integrator("gather")
+            integrator.grid = dataclasses.replace(integrator.grid, radiance=to_jit(mi.Color3f, radiance))
+            renderer._scenes.clear()  # (a new kernel)
+            m = bias_metrics(renderer.render(scene.camera, CONVERGED_SPP, 1, "gather"), ref)
+            cells.append(f"{100 * m['binned_relMAE']:.2f} % / {m['mean_ratio']:.3f}")
+        print(f"| {bs.name}, {view}, {albedo:g} | {cells[0]} | {cells[1]} |", flush=True)

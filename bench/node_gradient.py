@@ -17,7 +17,6 @@ today's lookup and with the gradients, against the 1024-spp RR-free volpath refe
 
 import dataclasses
 import sys
-from pathlib import Path
 
 import numpy as np
 
@@ -28,11 +27,9 @@ set_variant()
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
-from bench.harness import CONVERGED_SPP, LIGHT, _scene, bench_scenes, cameras, reference  # noqa: E402
-from cloudgraph.cache import CacheStore  # noqa: E402
+from bench.harness import CONVERGED_SPP, dense_cases  # noqa: E402
 from cloudgraph.graph import gradient_operators  # noqa: E402
 from cloudgraph.metrics import bias_metrics  # noqa: E402
-from cloudgraph.precompute import precompute  # noqa: E402
 from cloudgraph.render import GraphRenderer  # noqa: E402
 from cloudgraph.spatial import NodeGrid  # noqa: E402
 from cloudgraph.tracing import to_jit  # noqa: E402
@@ -63,26 +60,19 @@ class GradientGrid(NodeGrid):
 
 
 if __name__ == "__main__":
-    refs = Path(__file__).resolve().parent / "reference-cache"
-    store = CacheStore(Path(__file__).resolve().parent / "cache")
     print("| scene, view, albedo | gather (Eq. 4.25) | gather, nodes extrapolated by gradient |")
     print("|---|---|---|")
-    for bs in bench_scenes(sys.argv[1:] or ["dense", "thick", "holdout_thick"]):
-        for view, camera in cameras(bs.volume, LIGHT, 64).items():
-            for albedo in (1.0, 0.8):
-                scene = _scene(bs, camera, albedo, 16, seed=0)
-                cache = precompute(scene, bs.volume, "default", store)
-                ref = reference(bs, scene, 1024, refs)
-                renderer = GraphRenderer(cache, bs.volume, scene)
-                cells = []
-                for variant in ("today", "gradient"):
-                    if variant == "gradient":
-                        integrator = renderer.integrator("gather")
-                        positions, search_radius = cache.nodes
-                        integrator.grid = GradientGrid.of(
-                            integrator.grid, positions, search_radius, cache.radiance_gather
-                        )
-                        renderer._scenes.clear()  # (a new kernel)
-                    m = bias_metrics(renderer.render(scene.camera, CONVERGED_SPP, 1, "gather"), ref)
-                    cells.append(f"{100 * m['binned_relMAE']:.2f} % / {m['mean_ratio']:.3f}")
-                print(f"| {bs.name}, {view}, {albedo:g} | {cells[0]} | {cells[1]} |", flush=True)
+    for bs, view, albedo, scene, cache, ref in dense_cases(sys.argv[1:]):
+        renderer = GraphRenderer(cache, bs.volume, scene)
+        cells = []
+        for variant in ("today", "gradient"):
+            if variant == "gradient":
+                integrator = renderer.integrator("gather")
+                positions, search_radius = cache.nodes
+                integrator.grid = GradientGrid.of(
+                    integrator.grid, positions, search_radius, cache.radiance_gather
+                )
+                renderer._scenes.clear()  # (a new kernel)
+            m = bias_metrics(renderer.render(scene.camera, CONVERGED_SPP, 1, "gather"), ref)
+            cells.append(f"{100 * m['binned_relMAE']:.2f} % / {m['mean_ratio']:.3f}")
+        print(f"| {bs.name}, {view}, {albedo:g} | {cells[0]} | {cells[1]} |", flush=True)
