@@ -5,12 +5,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import mitsuba as mi
 import numpy as np
 from scipy.ndimage import maximum_filter
 
 from .light_depth import sub_samples
-from .tracing import DensityField, to_jit
+from .tracing import DensityField
 
 #: Field grid points at most (the density grid's resolution up to this; coarser beyond, by one
 #: integer factor on every axis). 2^24 points: 64 MiB of float32 per scalar array in memory.
@@ -64,8 +63,7 @@ class FieldPoints:
             density = np.ascontiguousarray(volume.density.transpose(2, 1, 0), np.float32)
             sigma_t = density * np.float32(medium.scale)
         else:
-            sigma_t = np.array(medium.sigma_t(to_jit(mi.Point3f, to_world(u2w, units))), np.float32)
-            sigma_t = sigma_t.reshape(nz, ny, nx)
+            sigma_t = medium.sigma_t_at(to_world(u2w, units)).astype(np.float32).reshape(nz, ny, nx)
         # Trilinear interpolation at any point of the medium reads 8 grid points, all within one
         # voxel of a non-zero one
         near = maximum_filter(sigma_t > 0, size=3, mode="constant").ravel()

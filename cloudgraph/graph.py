@@ -11,7 +11,11 @@ so the graph depends on sigma_t only, never on albedo or light colour.
 A flight from a lands in b on a's side of b: an edge reads b's radiance at b's position, the
 mean of all b's collisions, where its own samples collided nearer to a. Per edge the graph keeps
 where they did (``landing``), and transport reads b there, to first order, by b's radiance
-gradient (:meth:`Graph.transitions`; docs/method.md, "Where a flight lands").
+gradient (:meth:`Graph.transitions`; docs/method.md, "Where a flight lands"). Where the medium
+absorbs, radiance is not linear across a node: it falls as exp(-kappa x) with the diffusion's
+kappa^2 = 3 (1 - albedo) sigma_t^2, and a linear read from b's position to the landing point
+reads low by its second-order term, about (1 - albedo) sigma_t^2 |offset|^2 / 2 of L_b (the
+Laplacian kappa^2 L shared by the three axes). Transport adds that term too.
 """
 
 from __future__ import annotations
@@ -57,11 +61,14 @@ class Graph:
         inv = np.divide(1.0, self.out_samples, out=np.zeros(self.n_nodes), where=self.out_samples > 0)
         return sp.csr_matrix(sp.diags(inv) @ self.counts)
 
-    def transitions(self, gradient: dict, workers: int = 1) -> Transitions:
+    def transitions(self, gradient: dict, workers: int = 1, sigma_t=None, albedo=1.0) -> Transitions:
         """The collision probabilities with each edge read where its flights landed (the module
-        docstring): T x = C x + sum_axis S_axis (D_axis x), S_axis = C times the landing offsets
-        on that axis, D_axis the nodes' gradient operator (:func:`gradient_operators` of the
-        ``gradient`` parameters, params.GRADIENT; its k-d tree queried on ``workers`` threads)."""
+        docstring): T x = C x + sum_axis S_axis (D_axis x) + (1 - albedo) Q x, S_axis = C times
+        the landing offsets on that axis, D_axis the nodes' gradient operator
+        (:func:`gradient_operators` of the ``gradient`` parameters, params.GRADIENT; its k-d tree
+        queried on ``workers`` threads), Q = C times sigma_t(b)^2 |offset|^2 / 2 (the curvature
+        where the medium absorbs; ``sigma_t`` (N,) at the nodes, None: none), ``albedo`` scalar
+        or per channel of the x that T is applied to."""
         C = self.collision_matrix()
         C.sort_indices()
         if self.landing is None or not C.nnz:
@@ -85,7 +92,15 @@ class Graph:
             ),
             shape=(n, 3 * n),
         )
-        return Transitions(C, S, D)
+        Q = None
+        if sigma_t is not None:
+            half = (
+                0.5
+                * np.asarray(sigma_t, np.float64)[C.indices] ** 2
+                * np.sum(self.landing.astype(np.float64) ** 2, axis=1)
+            )
+            Q = sp.csr_matrix((C.data * half, C.indices, C.indptr), shape=C.shape)
+        return Transitions(C, S, D, Q, 1.0 - np.asarray(albedo, np.float64))
 
     def to_arrays(self) -> dict:
         """The graph as plain arrays (the inputs of a ``graph_file`` chunk, GraphBuilder); the
@@ -132,17 +147,25 @@ def compact_uint(a: np.ndarray) -> np.ndarray:
 class Transitions:
     """The graph's transition operator for transport (:meth:`Graph.transitions`): ``T @ x`` for
     (N,) or (N, K) x, and ``correction(x)``, (T - C) x. ``S`` (N, 3N) and ``D`` (3N, N): the
-    landing offsets and the gradients, axes interleaved (None: C alone)."""
+    landing offsets and the gradients, axes interleaved (None: C alone); ``Q`` (N, N): the
+    curvature's term per unit of ``absorption`` (1 - albedo: scalar, or (K,) per column of x;
+    None: none)."""
 
-    def __init__(self, C: sp.csr_matrix, S: sp.csr_matrix | None = None, D: sp.csr_matrix | None = None):
-        self.C, self.S, self.D, self.shape = C, S, D, C.shape
+    def __init__(self, C: sp.csr_matrix, S=None, D=None, Q=None, absorption=0.0):
+        self.C, self.S, self.D, self.Q, self.shape = C, S, D, Q, C.shape
+        self.absorption = absorption
 
     def __matmul__(self, x: np.ndarray) -> np.ndarray:
         return self.C @ x + self.correction(x)
 
     def correction(self, x: np.ndarray) -> np.ndarray:
         """(T - C) x: what reading the edges where their flights landed adds."""
-        return self.S @ (self.D @ x) if self.S is not None else np.zeros_like(x)
+        if self.S is None:
+            return np.zeros_like(x)
+        out = self.S @ (self.D @ x)
+        if self.Q is not None:
+            out += (self.Q @ x) * self.absorption
+        return out
 
 
 def gradient_operators(

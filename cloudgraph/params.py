@@ -129,7 +129,8 @@ def build_params(volume: Volume, density_scale: float, quality: str = "default",
 #: read the same image means within 0.3 % (docs/measurements.md, "Where a flight lands"); 8 take
 #: half the time.
 GRADIENT = {"nodes": 8, "width": 1.0, "ridge": 0.05}
-#: ``landing``: the gradient's parameters (the radiance changes with them).
+#: ``landing``: the gradient's parameters (the radiance changes with them); ``curvature``: with
+#: the landing points' second-order term where the medium absorbs (graph.Graph.transitions).
 LIGHTING = {
     "samples": 16,
     "tol": 1e-5,
@@ -137,4 +138,5 @@ LIGHTING = {
     "field": 6,
     "gather": 2,
     "landing": GRADIENT,
+    "curvature": True,
 }

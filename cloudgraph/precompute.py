@@ -229,8 +229,10 @@ def precompute(
         t_light = time.perf_counter() - t_light
         progress("transport", 0.85)
         t0 = time.perf_counter()
-        C, depth = graph.transitions(GRADIENT, cpu_threads()), scene.render.max_depth
         albedo = np.tile(graph_albedo, lights.count)
+        sigma_t = builder.field.sigma_t_at(graph.positions) if LIGHTING["curvature"] else None
+        C = graph.transitions(GRADIENT, cpu_threads(), sigma_t, albedo)
+        depth = scene.render.max_depth
 
         def still_wanted():  # progress() raises when the job was cancelled
             progress("transport", 0.85)

@@ -111,6 +111,10 @@ class DensityField:
         # mi.Point3f(...): o + t * d is typed as a vector, which a transform would not translate
         return self.texture.eval(self.world_to_unit @ mi.Point3f(p))[0] * self.scale
 
+    def sigma_t_at(self, points: np.ndarray) -> np.ndarray:
+        """(M,) float64 extinction at (M, 3) world points (numpy in and out)."""
+        return np.array(self.sigma_t(to_jit(mi.Point3f, np.asarray(points, np.float32))), np.float64)
+
     def block(self, o: mi.Point3f, d: mi.Vector3f, t: mi.Float, active: mi.Bool) -> tuple[mi.Float, mi.Float]:
         """The block holding o + t d: its majorant (max sigma_t, 0 where empty space can be
         skipped) and the ray parameter where the ray leaves it (d need not be of unit length)."""

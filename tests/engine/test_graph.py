@@ -184,6 +184,48 @@ def test_transport_reads_each_edge_where_its_flights_landed(variant, tmp_path, v
     assert m["binned_relMAE"] < 0.05
 
 
+def test_node_radiance_where_the_medium_absorbs(variant, tmp_path, monkeypatch):
+    # Node radiance against an independent estimate of what it stands for: at 2000 of a dense
+    # cloud's nodes (optical depth 4 a voxel, albedo 0.8), the light scattered more than once
+    # that reaches each (256 walks a node, its events all taken exactly, as volpath takes them,
+    # phase.phase_walk) against what ``gather`` reads there (the node grid's lookup). Read as a
+    # plane where its flights landed, the light that falls as exp(-kappa x) read low; with the
+    # curvature's term (Graph.transitions) it is right.
+    import drjit as dr
+    import mitsuba as mi
+
+    import cloudgraph.params as params
+    from cloudgraph.phase import phase_walk
+    from cloudgraph.render import GraphRenderer
+    from cloudgraph.tracing import jit_rng, to_jit, uniform_sphere
+
+    volume, scale = dense_cloud(4.0)
+    scene = medium_scene(volume, scale, albedo=0.8, eye_dir=SIDE, size=24)
+    walks, truth, ratio = 256, None, {}
+    for curvature in (False, True):
+        monkeypatch.setitem(params.LIGHTING, "curvature", curvature)
+        cache = precompute(scene, volume, "default", CacheStore(tmp_path / str(curvature)))
+        it = GraphRenderer(cache, volume, scene).integrator("gather")
+        positions = cache.nodes[0]
+        points = positions[np.random.default_rng(0).choice(len(positions), 2000, replace=False)]
+        points = to_jit(mi.Point3f, points)
+        if truth is None:  # (the same nodes: the graph does not depend on albedo or lighting)
+            n = 2000 * walks
+            o = dr.gather(mi.Point3f, points, dr.arange(mi.UInt32, n) // walks)
+            rng = jit_rng(n, 7, dr.arange(mi.UInt64, n))
+            suns = [(tuple(map(float, it.to_light[0])), mi.Color3f(it.irradiance[0]))]
+            L = phase_walk(
+                it.medium, ((1.0, 0.0),), suns, mi.Color3f(*it.albedo),
+                lambda mask, w: mi.Color3f(0.0), None, o, uniform_sphere(rng), rng, mi.Bool(True), 10_000,
+            )  # fmt: skip
+            truth = np.array(dr.block_sum(L.x, walks), np.float64).sum() / walks
+        read = np.array(it.grid.lookup(points, it.eps2, mi.Bool(True)).x, np.float64).sum()
+        ratio[curvature] = read / truth
+    # measured: 0.971 as a plane, 0.9945 with the curvature's term
+    assert ratio[False] < 0.98
+    assert abs(ratio[True] - 1.0) < 0.012
+
+
 def test_transitions_read_a_linear_field_where_the_flights_landed():
     # Transport's operator against its closed form: where node radiance is a linear function of
     # position, T L = sum_b C[a, b] L(x_b + landing offset), the light at the landing points.
@@ -220,6 +262,51 @@ def test_transitions_read_a_linear_field_where_the_flights_landed():
     # without landing offsets, the collision probabilities alone
     bare = Graph(graph.positions, graph.search_radius, out, counts, {})
     np.testing.assert_allclose(bare.transitions(GRADIENT) @ L, graph.collision_matrix() @ L, rtol=1e-12)
+
+
+def test_transitions_read_an_absorbing_medium_s_curved_field_where_the_flights_landed():
+    # Where the medium absorbs, radiance falls as exp(-kappa x), kappa^2 = 3 (1 - albedo)
+    # sigma_t^2 (diffusion), and a plane through b reads the landing points low by the
+    # second-order term. With sigma_t at the nodes, T adds it on average (the offsets' squares
+    # against the Laplacian kappa^2 L shared by three axes): the landing points' light to within
+    # the gradients' own error, where without it every edge reads 1/2 kappa^2 (offset . n)^2 low.
+    from cloudgraph.graph import Graph
+    from cloudgraph.params import GRADIENT
+
+    rng = np.random.default_rng(5)
+    axis = np.arange(12, dtype=float)
+    positions = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
+    positions += rng.normal(0, 0.1, positions.shape)
+    n = len(positions)
+    near = cKDTree(positions).query(positions, 7)[1]
+    counts = sp.csr_matrix(
+        (rng.integers(1, 9, near.size), near.ravel(), np.arange(0, near.size + 1, 7)), (n, n)
+    )
+    counts.sum_duplicates()
+    landing = rng.uniform(-0.5, 0.5, (counts.nnz, 3)).astype(np.float32)
+    out = np.asarray(counts.sum(axis=1)).ravel() + 5
+    graph = Graph(positions.astype(np.float32), np.full(n, 1.5, np.float32), out, counts, {}, landing)
+    sigma_t, albedo = 1.2, 0.8
+    kappa = np.sqrt(3.0 * (1.0 - albedo)) * sigma_t
+    normal = np.array([2.0, -1.0, 0.5]) / np.linalg.norm([2.0, -1.0, 0.5])
+
+    def radiance(x):
+        return np.exp(-kappa * (x @ normal))
+
+    L = radiance(positions)
+    starts = np.repeat(np.arange(n), np.diff(counts.indptr))
+    C = graph.transitions(GRADIENT).C  # (its entries in the counts' order)
+    expected = np.bincount(starts, C.data * radiance(positions[counts.indices] + landing), n)
+    inner = np.all((positions > 1.5) & (positions < 9.5), axis=1)
+    curved = graph.transitions(GRADIENT, sigma_t=np.full(n, sigma_t), albedo=albedo) @ L
+    plane = graph.transitions(GRADIENT) @ L
+    bias = {k: np.mean(((v - expected) / expected)[inner]) for k, v in (("curved", curved), ("plane", plane))}
+    # measured: plane -3.6 %, curved +0.02 %
+    assert bias["plane"] < -0.03
+    assert abs(bias["curved"]) < 0.1 * abs(bias["plane"])
+    # at albedo 1, nothing to add
+    at_one = graph.transitions(GRADIENT, sigma_t=np.full(n, sigma_t), albedo=1.0) @ L
+    np.testing.assert_array_equal(at_one, plane)
 
 
 def two_density_box():
@@ -346,7 +433,8 @@ def test_changing_albedo_reuses_the_graph_and_recomputes_only_the_radiance(varia
     assert np.all(dark.radiance[lit] < bright.radiance[lit]) and np.all(dark.radiance[~lit] == 0)
     # and exactly what the transport equation gives: the nodes' direct light (the same chunks
     # again), solved with a direct sparse solver, each edge read where its flights landed
-    # (Graph.transitions: C + K, K = S D, to first order: L_0 + (I - aC)^-1 aK L_0). The solver
+    # (Graph.transitions: C + K, K = S D + (1 - a) Q, to first order: L_0 + (I - aC)^-1 aK L_0,
+    # Q of sigma_t at the nodes). The solver
     # stops at 1e-5 of the total and the file keeps 8 significant bits (0.4 %); measured: 0.21 %
     # of the largest value, 0.38 % at most relative.
     from cloudgraph.build import GraphBuilder
@@ -355,15 +443,19 @@ def test_changing_albedo_reuses_the_graph_and_recomputes_only_the_radiance(varia
     from cloudgraph.params import GRADIENT, build_params
     from cloudgraph.precompute import lighting_inputs
     from cloudgraph.stages import local_chunks
+    from cloudgraph.tracing import DensityField
 
     scene, params = medium_scene(volume, 0.5, albedo=0.6), build_params(volume, 0.5, "draft")
     inputs = lighting_inputs(dark.graph.positions, Lights.of(scene), params)
     lit = local_chunks(GraphBuilder(volume, 0.5, params), "lighting", inputs)
     L_d = placed(lit, dark.graph.n_nodes, 3, np.float64)
-    T = dark.graph.transitions(GRADIENT)
+    sigma_t = DensityField.from_volume(volume, 0.5).sigma_t_at(dark.graph.positions)
+    T = dark.graph.transitions(GRADIENT, sigma_t=sigma_t, albedo=0.6)
     solve = spla.splu(sp.identity(T.shape[0], format="csc") - 0.6 * sp.csc_matrix(T.C)).solve
     first = solve(L_d)
-    expected = np.maximum(first + solve(0.6 * (T.S @ (T.D @ first))), 0.0)
+    half = 0.5 * sigma_t[T.C.indices] ** 2 * np.sum(dark.graph.landing.astype(float) ** 2, axis=1)
+    Q = sp.csr_matrix((T.C.data * half, T.C.indices, T.C.indptr), T.shape)
+    expected = np.maximum(first + solve(0.6 * (T.S @ (T.D @ first) + 0.4 * (Q @ first))), 0.0)
     np.testing.assert_allclose(dark.radiance, expected, rtol=4e-3, atol=1e-4 * expected.max())
 
 
