@@ -11,11 +11,12 @@ series, whose terms shrink only as fast as the chance of escaping: slowly in a t
 albedo 1. The series stays as the fallback should the solver not converge.
 
 The graph's edges are read where their flights landed (graph.Graph.transitions: T = C + K, K by
-the nodes' radiance gradients, and where the medium absorbs the curvature's term). With unbounded depth K is taken to first order, by a second solve
-of C alone: L' = L_0 + (I - aC)^-1 aK L_0, L_0 = (I - aC)^-1 L_d. Solved with K inside, the
-system need not converge at albedo 1 (on the bench's dense cloud lit by a random direct light,
-BiCGSTAB broke down and GMRES stalled at a residual of 0.6; its sun's light converged): C's
-spectral radius is all but 1 there, and K's gradients lift some modes of noise past it.
+the nodes' radiance gradients, and where the medium absorbs the curvature's term). With
+unbounded depth K is taken to first order, by a second solve of C alone: L' = L_0 +
+(I - aC)^-1 aK L_0, L_0 = (I - aC)^-1 L_d. Solved with K inside, the system need not converge
+at albedo 1 (on the bench's dense cloud lit by a random direct light, BiCGSTAB broke down and
+GMRES stalled at a residual of 0.6; its sun's light converged): C's spectral radius is all but 1
+there, and K's gradients lift some modes of noise past it.
 """
 
 from __future__ import annotations
