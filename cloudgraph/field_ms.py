@@ -49,14 +49,18 @@ from .tracing import (
 )
 
 #: Directions per point of the multiple-scattering gather (8 and 16 measure the same on the
-#: dense bench cloud: the camera march averages neighbouring points' turned sets), and its march
-#: step in field voxels.
+#: dense bench cloud: the camera march averages neighbouring points' turned sets), and its
+#: shortest march step in field voxels.
 MS_DIRECTIONS = 8
-MS_STEP = 1.0
+MS_STEP = 0.5
 #: The gather's steps span at most this optical depth (at the block majorant), and at most
-#: MS_STRIDE times MS_STEP in thin media.
+#: MS_STRIDE times MS_STEP (4 voxels) in thin media. Steps of at least a voxel read L_ms bright
+#: where a voxel is optically thick: on the dense bench cloud at albedo 1, back-lit, ``gather``
+#: with its second flight replaced by this march from the camera's collision read 1.0 % over the
+#: same with the flight sampled (and 2.2 % at albedo 0.8); with steps down to half a voxel 0.3 %,
+#: to a quarter 0.1 % (docs/measurements.md, "The field's multiple-scattering march").
 MS_MAX_DTAU = 0.5
-MS_STRIDE = 4.0
+MS_STRIDE = 8.0
 #: The gather stops where this much light is left, and adds the rest at the last G seen.
 MS_TR_MIN = 1e-2
 #: The bake's G = albedo L' (what a flight from a grid point reaches) is interpolated between
@@ -84,11 +88,14 @@ WALK_SMOOTH = 2.0
 #: dense cloud L_ms falls within a fraction of a voxel below a lit surface, like the light, and
 #: tau_light is read on a grid up to twice as fine. P per channel grows with absorption, as the
 #: diffusion's decay sqrt(3 (1 - albedo)) does: P = P_0 + P_1 sqrt(3 (1 - albedo)). Chosen on the
-#: bench's thick and dense clouds, side-lit, all orders, field at 16 spp against gather at 2048 on
-#: one cache (4x4-binned relMAE / mean; docs/measurements.md): thick at albedo 0.8 2.30 % / 0.985
-#: without, 1.21 % / 1.001 with P = 0.45 (P 0.25-0.75 and RANGE 1-4 tried); at albedo 1 1.69 % /
-#: 0.991 without, 1.25 % / 0.998 with P = 0.1 (P = 0.5: 2.25 % / 1.021).
-MS_LIGHT_POWER = (0.1, 0.45)
+#: bench's thick and dense clouds, all orders, field at 16 spp against gather at 1024 on one
+#: cache (4x4-binned relMAE / mean; docs/measurements.md): first thick side-lit at albedo 0.8
+#: 2.30 % / 0.985 without, 1.21 % / 1.001 with P = 0.45 (P 0.25-0.75 and RANGE 1-4 tried); at
+#: albedo 1 1.69 % / 0.991 without, 1.25 % / 0.998 with P = 0.1 (P = 0.5: 2.25 % / 1.021). Chosen
+#: again with the march's half-voxel steps (MS_STEP), which no longer reads L_ms bright: with
+#: (0.1, 0.45) thick side-lit at albedo 0.8 read 0.987 of gather, with (0.2, 0.8) 0.998; over the
+#: dense and thick clouds' 8 views, field against gather within 0.998-1.012 in mean.
+MS_LIGHT_POWER = (0.2, 0.8)
 MS_LIGHT_RANGE = 1.25
 
 
