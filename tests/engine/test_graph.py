@@ -226,54 +226,13 @@ def test_node_radiance_where_the_medium_absorbs(variant, tmp_path, monkeypatch):
     assert abs(ratio[True] - 1.0) < 0.012
 
 
-def test_transitions_read_a_linear_field_where_the_flights_landed():
-    # Transport's operator against its closed form: where node radiance is a linear function of
-    # position, T L = sum_b C[a, b] L(x_b + landing offset), the light at the landing points.
+def lattice_graph(seed: int, spread: float):
+    """A 12^3 jittered lattice of nodes, each with edges to its 6 nearest and itself, random
+    counts and landing offsets uniform in +-``spread`` per axis; some flights escape. Returns
+    (graph, the edges' start nodes, the nodes off the lattice's boundary)."""
     from cloudgraph.graph import Graph
-    from cloudgraph.params import GRADIENT
 
-    rng = np.random.default_rng(4)
-    axis = np.arange(12, dtype=float)
-    positions = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
-    positions += rng.normal(0, 0.1, positions.shape)
-    n = len(positions)
-    near = cKDTree(positions).query(positions, 7)[1]  # edges to each node's 6 nearest and itself
-    counts = sp.csr_matrix(
-        (rng.integers(1, 9, near.size), near.ravel(), np.arange(0, near.size + 1, 7)), (n, n)
-    )
-    counts.sum_duplicates()
-    landing = rng.uniform(-0.4, 0.4, (counts.nnz, 3)).astype(np.float32)
-    out = np.asarray(counts.sum(axis=1)).ravel() + 5  # (some escape)
-    graph = Graph(positions.astype(np.float32), np.full(n, 1.5, np.float32), out, counts, {}, landing)
-    slope = np.array([0.3, -0.2, 0.1])
-    L = 5.0 + positions @ slope
-    T = graph.transitions(GRADIENT)
-    C = T.C  # (its entries in the counts' order)
-    starts = np.repeat(np.arange(n), np.diff(counts.indptr))
-    at_landing = L[counts.indices] + landing @ slope
-    expected = np.bincount(starts, C.data * at_landing, n)
-    read = T @ L
-    correction = expected - C @ L
-    inner = np.all((positions > 1.5) & (positions < 9.5), axis=1)  # (a plane fits the boundary too)
-    assert np.abs(correction[inner]).mean() > 0.02
-    # (the gradients' ridge shrinks them, here by 5 %: measured 0.067 of the largest correction;
-    # read at the ends' positions, it is all of it)
-    assert np.abs(read - expected)[inner].max() < 0.1 * np.abs(correction[inner]).max()
-    # without landing offsets, the collision probabilities alone
-    bare = Graph(graph.positions, graph.search_radius, out, counts, {})
-    np.testing.assert_allclose(bare.transitions(GRADIENT) @ L, graph.collision_matrix() @ L, rtol=1e-12)
-
-
-def test_transitions_read_an_absorbing_medium_s_curved_field_where_the_flights_landed():
-    # Where the medium absorbs, radiance falls as exp(-kappa x), kappa^2 = 3 (1 - albedo)
-    # sigma_t^2 (diffusion), and a plane through b reads the landing points low by the
-    # second-order term. With sigma_t at the nodes, T adds it on average (the offsets' squares
-    # against the Laplacian kappa^2 L shared by three axes): the landing points' light to within
-    # the gradients' own error, where without it every edge reads 1/2 kappa^2 (offset . n)^2 low.
-    from cloudgraph.graph import Graph
-    from cloudgraph.params import GRADIENT
-
-    rng = np.random.default_rng(5)
+    rng = np.random.default_rng(seed)
     axis = np.arange(12, dtype=float)
     positions = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3)
     positions += rng.normal(0, 0.1, positions.shape)
@@ -283,9 +242,49 @@ def test_transitions_read_an_absorbing_medium_s_curved_field_where_the_flights_l
         (rng.integers(1, 9, near.size), near.ravel(), np.arange(0, near.size + 1, 7)), (n, n)
     )
     counts.sum_duplicates()
-    landing = rng.uniform(-0.5, 0.5, (counts.nnz, 3)).astype(np.float32)
+    landing = rng.uniform(-spread, spread, (counts.nnz, 3)).astype(np.float32)
     out = np.asarray(counts.sum(axis=1)).ravel() + 5
     graph = Graph(positions.astype(np.float32), np.full(n, 1.5, np.float32), out, counts, {}, landing)
+    starts = np.repeat(np.arange(n), np.diff(counts.indptr))
+    inner = np.all((positions > 1.5) & (positions < 9.5), axis=1)  # (a plane fits the boundary too)
+    return graph, starts, inner
+
+
+def test_transitions_read_a_linear_field_where_the_flights_landed():
+    # Transport's operator against its closed form: where node radiance is a linear function of
+    # position, T L = sum_b C[a, b] L(x_b + landing offset), the light at the landing points.
+    from cloudgraph.graph import Graph
+    from cloudgraph.params import GRADIENT
+
+    graph, starts, inner = lattice_graph(4, 0.4)
+    positions, counts, landing, n = graph.positions.astype(float), graph.counts, graph.landing, graph.n_nodes
+    slope = np.array([0.3, -0.2, 0.1])
+    L = 5.0 + positions @ slope
+    T = graph.transitions(GRADIENT)
+    C = T.C  # (its entries in the counts' order)
+    at_landing = L[counts.indices] + landing @ slope
+    expected = np.bincount(starts, C.data * at_landing, n)
+    read = T @ L
+    correction = expected - C @ L
+    assert np.abs(correction[inner]).mean() > 0.02
+    # (the gradients' ridge shrinks them, here by 5 %: measured 0.067 of the largest correction;
+    # read at the ends' positions, it is all of it)
+    assert np.abs(read - expected)[inner].max() < 0.1 * np.abs(correction[inner]).max()
+    # without landing offsets, the collision probabilities alone
+    bare = Graph(graph.positions, graph.search_radius, graph.out_samples, counts, {})
+    np.testing.assert_allclose(bare.transitions(GRADIENT) @ L, graph.collision_matrix() @ L, rtol=1e-12)
+
+
+def test_transitions_read_an_absorbing_medium_s_curved_field_where_the_flights_landed():
+    # Where the medium absorbs, radiance falls as exp(-kappa x), kappa^2 = 3 (1 - albedo)
+    # sigma_t^2 (diffusion), and a plane through b reads the landing points low by the
+    # second-order term. With sigma_t at the nodes, T adds it on average (the offsets' squares
+    # against the Laplacian kappa^2 L shared by three axes): the landing points' light to within
+    # the gradients' own error, where without it every edge reads 1/2 kappa^2 (offset . n)^2 low.
+    from cloudgraph.params import GRADIENT
+
+    graph, starts, inner = lattice_graph(5, 0.5)
+    positions, counts, landing, n = graph.positions.astype(float), graph.counts, graph.landing, graph.n_nodes
     sigma_t, albedo = 1.2, 0.8
     kappa = np.sqrt(3.0 * (1.0 - albedo)) * sigma_t
     normal = np.array([2.0, -1.0, 0.5]) / np.linalg.norm([2.0, -1.0, 0.5])
@@ -294,10 +293,8 @@ def test_transitions_read_an_absorbing_medium_s_curved_field_where_the_flights_l
         return np.exp(-kappa * (x @ normal))
 
     L = radiance(positions)
-    starts = np.repeat(np.arange(n), np.diff(counts.indptr))
     C = graph.transitions(GRADIENT).C  # (its entries in the counts' order)
     expected = np.bincount(starts, C.data * radiance(positions[counts.indices] + landing), n)
-    inner = np.all((positions > 1.5) & (positions < 9.5), axis=1)
     curved = graph.transitions(GRADIENT, sigma_t=np.full(n, sigma_t), albedo=albedo) @ L
     plane = graph.transitions(GRADIENT) @ L
     bias = {k: np.mean(((v - expected) / expected)[inner]) for k, v in (("curved", curved), ("plane", plane))}
