@@ -58,7 +58,8 @@ MS_STEP = 0.5
 #: where a voxel is optically thick: on the dense bench cloud at albedo 1, back-lit, ``gather``
 #: with its second flight replaced by this march from the camera's collision read 1.0 % over the
 #: same with the flight sampled (and 2.2 % at albedo 0.8); with steps down to half a voxel 0.3 %,
-#: to a quarter 0.1 % (docs/measurements.md, "The field's multiple-scattering march").
+#: to a quarter 0.1 % (docs/measurements.md, "Where the medium absorbs, and the field's
+#: multiple-scattering march").
 MS_MAX_DTAU = 0.5
 MS_STRIDE = 8.0
 #: The gather stops where this much light is left, and adds the rest at the last G seen.
