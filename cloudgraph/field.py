@@ -164,7 +164,8 @@ def bake_field(
     # grid point, to p'', where the graph's albedo L' stands in for the rest (Eq. 4.25):
     #   L_ms(x) = 1/4pi int_S2 int_0^inf T_r(x, x + t w) sigma_t(x + t w) G(x + t w) dt dw,
     #   G = albedo L'_search (radiance_gather) + albedo E exp(-tau_light) / 4pi per sun,
-    # with G baked on the field grid first (one node lookup per point), then K fixed directions
+    # with albedo L'_search baked on the field grid first (one node lookup per point), the suns'
+    # part read from tau_light where the march is (the camera march's own), then K fixed directions
     # per point (a spherical Fibonacci set, turned at random per point) marched in closed form.
     # The sky's component also takes what escapes: its single scattering, smooth, baked here.
     # One lookup and one gather per light component.
@@ -222,16 +223,19 @@ def bake_field(
         return taus
 
     # With the isotropic phase the nodes' radiance is without the suns' direct light
-    # (precompute.without_sun): G takes it exactly at the grid points, from their tau_light
+    # (precompute.without_sun): the march adds it where it reads G, from tau_light
     sun_exact = lobes is None and not 0 <= max_depth < 2
     gathered, walked = [], []
     for c, lk in enumerate(looked):
         G = placed(lk, len(points), 3)
-        if sun_exact and lights.kind(c) == "directional":  # (component c is directional light c)
-            sun = np.asarray(albedo, np.float32) * lights.cached[c] / np.float32(4.0 * np.pi)
-            G += np.exp(-marched_tau(c))[: len(points), None].astype(np.float32) * sun.astype(np.float32)
         G = _scatter(near, G, (nz, ny, nx, 3))
         inputs = {"points": q, "G": G, "step": step, "sky": np.array([int(lights.kind(c) == "sky")])}
+        if sun_exact and lights.kind(c) == "directional":  # (component c is directional light c)
+            # the sun's part of G read where the march is, from tau_light as the camera's march
+            # reads it: baked into G at the grid points, its steep fall below a lit surface
+            # read bright between them (the dense cloud back-lit: field 1.2 % over gather, 0.5 %)
+            inputs["sun"] = np.asarray(albedo, np.float32) * lights.cached[c] / np.float32(4.0 * np.pi)
+            inputs["tau"], inputs["tau_power"] = light_depths()[c], np.array([tau_power])
         if lights.kind(c) == "envmap":  # what escapes sees the map: the file, read where it runs
             inputs["envmap"] = np.array([lights.envmaps[c - lights.count + len(lights.envmaps)]])
         if lobes is not None and lights.kind(c) == "directional":  # a sun's, by walks
@@ -369,7 +373,11 @@ def field_chunk(builder, stage: str, index: int, inputs: dict) -> tuple[np.ndarr
         sky = float(inputs["sky"][0]) if "sky" in inputs else 0.0
         env = envmap_emitter(str(inputs["envmap"][0])) if "envmap" in inputs else None
         step = float(inputs["step"][0])
-        values = gather_ms(medium, g_texture(inputs["G"]), q, step, seed=a, sky=sky, env=env)
+        sun = None
+        if "sun" in inputs:
+            power = float(inputs["tau_power"][0])
+            sun = (mi.Color3f(*(float(c) for c in inputs["sun"])), depth_texture(inputs["tau"], power), power)
+        values = gather_ms(medium, g_texture(inputs["G"]), q, step, seed=a, sky=sky, env=env, sun=sun)
     return np.array([a]), values
 
 

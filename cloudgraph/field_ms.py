@@ -4,7 +4,7 @@
 Everything after the first scattering is computed as ``gather`` computes it at its camera
 collision: one more flight from the grid point to p'', where G = albedo L'_search (the
 ``radiance_gather`` of Eq. 4.25, on the field grid, with the isotropic phase plus each sun's
-direct light at the grid point: field.py) stands in for the rest,
+direct light where the flight is, from tau_light: field.py) stands in for the rest,
 
     L_ms(x) = 1/4pi int_S2 int_0^inf T_r(x, x + t w) sigma_t(x + t w) G(x + t w) dt dw,
 
@@ -143,13 +143,15 @@ def g_at(G_tex, pu, mask=True) -> mi.Color3f:
 
 
 def gather_ms(
-    medium, G_tex, points: np.ndarray, step: float, seed: int, sky: float = 0.0, env=None
+    medium, G_tex, points: np.ndarray, step: float, seed: int, sky: float = 0.0, env=None, sun=None
 ) -> np.ndarray:
     """(M, 3) L_ms at (M, 3) world points: MS_DIRECTIONS flights each, averaged (see bake_field);
     ``sky``: the radiance of a uniform sky that flights leaving the box see (0: none); ``env``:
     an environment map's emitter that they see instead (None: none), and that as many
     directions drawn from the map see too (tracing.envmap_nee: the two weighted by the power
-    heuristic, so that a small bright spot in the map is found)."""
+    heuristic, so that a small bright spot in the map is found); ``sun``: (albedo E / 4pi, the
+    texture of its tau_light (tracing.depth_texture), its power), a sun's direct light that G
+    is without, added as albedo E / 4pi exp(-tau_light) where the march reads G (None: none)."""
     m, k = len(points), MS_DIRECTIONS
     # Spherical Fibonacci directions, the same set for every point, in a random frame per point
     i = np.arange(k) + 0.5
@@ -165,7 +167,7 @@ def gather_ms(
     w = dr.gather(mi.Vector3f, to_jit(mi.Vector3f, fib), j)
     d = fr.to_world(w)
     o = dr.gather(mi.Point3f, to_jit(mi.Point3f, points), point)
-    L = _march_ms(medium, G_tex, o, d, step, sky, env)
+    L = _march_ms(medium, G_tex, o, d, step, sky, env, sun)
     if env is not None:  # and as many directions drawn from the map (multiple importance sampling)
         L += envmap_nee(medium, env, o, jit_rng(m * k, seed + 1, dr.arange(mi.UInt64, m * k)), mi.Bool(True))
     dr.eval(L)  # one kernel: read channel by channel, each would run the march again
@@ -174,15 +176,21 @@ def gather_ms(
 
 
 @dr.syntax
-def _march_ms(medium, G_tex, o: mi.Point3f, d: mi.Vector3f, step: float, sky: float, env) -> mi.Color3f:
+def _march_ms(
+    medium, G_tex, o: mi.Point3f, d: mi.Vector3f, step: float, sky: float, env, sun=None
+) -> mi.Color3f:
     """int T_r sigma_t G dt along each ray to the box boundary (trapezoid in optical depth, as the
-    field estimator marches), plus T_r to the boundary times ``sky`` or the environment map
+    field estimator marches; G with ``sun``'s direct light: :func:`gather_ms`), plus T_r to the boundary times ``sky`` or the environment map
     ``env`` seen along the ray; blocks without density are crossed in one step."""
     t, t_end = medium.box_interval(o, d)
 
     def at(t):
         x = o + t * d
-        return medium.sigma_t(x), g_at(G_tex, medium.world_to_unit @ mi.Point3f(x))
+        pu = medium.world_to_unit @ mi.Point3f(x)
+        G = g_at(G_tex, pu)
+        if sun is not None:
+            G += sun[0] * dr.exp(-depth_at(sun[1], pu, True, sun[2]))
+        return medium.sigma_t(x), G
 
     L = mi.Color3f(0.0)  # Gathered radiance
     Tr = mi.Float(1.0)  # Transmittance from the point
