@@ -45,7 +45,7 @@ if __name__ == "__main__":
         L = transport(
             graph.collision_matrix(), L_d, np.asarray(scene.medium.albedo_rgb()), -1, LIGHTING["tol"]
         )[0]
-        at_end = without_sun(L, L_d, lights, -1).astype(np.float32)
+        at_end = without_sun(L, L_d, lights).astype(np.float32)
         cells = []
         for radiance in (cache.radiance_gather, at_end):
             renderer = GraphRenderer(cache, bs.volume, scene)

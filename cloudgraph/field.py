@@ -51,9 +51,11 @@ from .field_ms import (
     walk_ms,
     walk_smoothing,
 )
+from .graph import gradient_operators, node_gradients
 from .light_depth import FINE_POWER, TAU_MAX, TAU_POWER, fine_depth, fine_shape, fit_depth
 from .lights import Lights
 from .mitsuba_scene import envmap_emitter
+from .params import GRADIENT, suns_apart
 from .phase import SHAPE_DEGREES, light_frame, phase_bounces
 from .spatial import NodeGrid, node_bins
 from .tracing import (
@@ -172,6 +174,17 @@ def bake_field(
     t0 = time.perf_counter()
     start, entries, grid = bins if bins is not None else node_bins(graph.positions, graph.search_radius)
     binned = {"start": start, "entries": entries, "grid": grid}
+    lobes = None if phase is None or phase.isotropic else np.array(phase.lobes(), float)
+    # With the isotropic phase the nodes' radiance is without the suns' direct light
+    # (precompute.without_sun): the march adds it where it reads G, from tau_light, and each node
+    # is read by its plane where a lookup falls, as gather's lookups are (render.py)
+    sun_exact = suns_apart(lobes is None, max_depth)
+    node_G = [component * np.asarray(albedo, np.float32)[None, :] for component in radiance_gather]
+    planes = {}
+    if sun_exact:
+        positions, ranges = (np.asarray(a, np.float64) for a in (graph.positions, graph.search_radius))
+        D = gradient_operators(positions, ranges, **GRADIENT, workers=cpu_threads())
+        planes = {c: {"gradient": node_gradients(D, G)} for c, G in enumerate(node_G)}
     looked = [
         chunks(
             builder,
@@ -180,13 +193,13 @@ def bake_field(
                 "points": points,
                 "positions": graph.positions,
                 "search_radius": graph.search_radius,
-                "G": component * np.asarray(albedo, np.float32)[None, :],
+                "G": G,
+                **planes.get(c, {}),
                 **binned,
             },
         )
-        for component in radiance_gather
+        for c, G in enumerate(node_G)
     ]
-    lobes = None if phase is None or phase.isotropic else np.array(phase.lobes(), float)
     k = MS_COARSEN  # coarser still where the points to gather would be over MS_MAX_POINTS
     while True:
         ms_shape = tuple(-(-n // k) for n in shape)
@@ -222,9 +235,6 @@ def bake_field(
                     taus.append(fit_depth(tau_grid, fp.sigma_t, *samples))
         return taus
 
-    # With the isotropic phase the nodes' radiance is without the suns' direct light
-    # (precompute.without_sun): the march adds it where it reads G, from tau_light
-    sun_exact = lobes is None and not 0 <= max_depth < 2
     gathered, walked = [], []
     for c, lk in enumerate(looked):
         G = placed(lk, len(points), 3)
@@ -390,7 +400,8 @@ def _lookup(inputs: dict, q: np.ndarray, node_radius: float) -> np.ndarray:
     where no node reaches, the nearest node's (:func:`fill_unreached`)."""
     positions, search_radius, node_G = (np.asarray(inputs[k]) for k in ("positions", "search_radius", "G"))
     bins = tuple(np.asarray(inputs[k]) for k in ("start", "entries", "grid"))
-    grid = NodeGrid.build(positions, search_radius, node_G, bins)
+    gradient = np.asarray(inputs["gradient"]) if "gradient" in inputs else None
+    grid = NodeGrid.build(positions, search_radius, node_G, bins, gradient)
     G = grid.lookup(to_jit(mi.Point3f, q), (0.05 * node_radius) ** 2, mi.Bool(True))
     dr.eval(G)  # one kernel for the three channels
     return fill_unreached(from_jit(G), q, positions, node_G)

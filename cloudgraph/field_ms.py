@@ -180,8 +180,9 @@ def _march_ms(
     medium, G_tex, o: mi.Point3f, d: mi.Vector3f, step: float, sky: float, env, sun=None
 ) -> mi.Color3f:
     """int T_r sigma_t G dt along each ray to the box boundary (trapezoid in optical depth, as the
-    field estimator marches; G with ``sun``'s direct light: :func:`gather_ms`), plus T_r to the boundary times ``sky`` or the environment map
-    ``env`` seen along the ray; blocks without density are crossed in one step."""
+    field estimator marches; G with ``sun``'s direct light: :func:`gather_ms`), plus T_r to the
+    boundary times ``sky`` or the environment map ``env`` seen along the ray; blocks without
+    density are crossed in one step."""
     t, t_end = medium.box_interval(o, d)
 
     def at(t):

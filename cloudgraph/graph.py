@@ -168,6 +168,13 @@ class Transitions:
         return out
 
 
+def node_gradients(D: sp.csr_matrix, values: np.ndarray) -> np.ndarray:
+    """(N, 3, C) float32: each node's gradient of ``values`` (N, C) by the (3N, N) operator D of
+    :func:`gradient_operators`, read where a lookup falls (spatial.NodeGrid.lookup)."""
+    values = np.asarray(values, np.float64)
+    return (D @ values).reshape(len(values), 3, -1).astype(np.float32)
+
+
 def gradient_operators(
     positions: np.ndarray, search_radius: np.ndarray, nodes: int, width: float, ridge: float, workers: int = 1
 ) -> sp.csr_matrix:

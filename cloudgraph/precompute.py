@@ -37,7 +37,7 @@ from .graph_file import (
     unpack_radiance,
 )
 from .lights import Lights, component_scenes
-from .params import GRADIENT, LIGHTING, BuildParams, build_params
+from .params import GRADIENT, LIGHTING, BuildParams, build_params, suns_apart
 from .scene import Scene
 from .stages import local_chunks
 from .tracing import cpu_threads
@@ -242,8 +242,8 @@ def precompute(
             L_gather = L
         else:
             L_gather = transport(C, L_d, albedo, depth - 1, LIGHTING["tol"], cancelled=still_wanted)[0]
-        if isotropic:  # (an anisotropic phase's walks read the similarity-scaled graph's all)
-            L_gather = without_sun(L_gather, L_d, lights, depth)
+        if suns_apart(isotropic, depth):  # (an anisotropic phase's walks read the graph's all)
+            L_gather = without_sun(L_gather, L_d, lights)
         t_transport = time.perf_counter() - t0
         packed = pack_radiance(stack_components(L, lights.count), stack_components(L_gather, lights.count))
         radiance, radiance_gather = unpack_radiance(packed)
@@ -360,14 +360,12 @@ def _composed(scene, volume, quality, store, progress, chunks, keys, build_overr
     return RadianceCache(radiance, radiance_gather, field_data, keys, stats, store, parts[0]._graph)
 
 
-def without_sun(L_gather: np.ndarray, L_d: np.ndarray, lights: Lights, max_depth: int) -> np.ndarray:
+def without_sun(L_gather: np.ndarray, L_d: np.ndarray, lights: Lights) -> np.ndarray:
     """(N, 3 K) ``gather``'s node radiance of the isotropic phase: L' with one event fewer, less
     the directional lights' direct radiance L_d, which ``gather`` and the field's bake take
-    exactly where they look the graph up (the second scattering event; none where ``max_depth``
-    is 1). A node's L_d is the light at its position, but the points looked up near it lie
-    around it, where the light falls by exp(-tau) across the node (docs/method.md)."""
-    if 0 <= max_depth < 2:
-        return L_gather
+    exactly where they look the graph up (the second scattering event: params.suns_apart). A
+    node's L_d is the light at its position, but the points looked up near it lie around it,
+    where the light falls by exp(-tau) across the node (docs/method.md)."""
     suns = np.repeat([lights.kind(c) == "directional" for c in range(lights.count)], 3)
     return np.where(suns, np.maximum(L_gather - L_d, 0.0), L_gather)
 

@@ -9,13 +9,15 @@ import mitsuba as mi
 import numpy as np
 
 from .errors import SceneError
+from .graph import gradient_operators, node_gradients
 from .lights import Lights
 from .mitsuba_scene import load_mitsuba_scene, sensor_dict, volpath_dict
 from .options import ESTIMATORS
+from .params import GRADIENT, suns_apart
 from .precompute import precompute
 from .scene import Scene
 from .spatial import NodeGrid
-from .tracing import DensityField, linear_texture, to_jit
+from .tracing import DensityField, cpu_threads, linear_texture
 from .volume import Volume, load_volume
 
 
@@ -49,6 +51,7 @@ class GraphRenderer:
         self.phase, self.max_depth = scene.medium.phase, scene.render.max_depth
         self._integrators: dict = {}
         self._scenes: dict[tuple, tuple] = {}
+        self._gradient_op = None
 
     def integrator(self, estimator: str):
         """The integrator of one estimator, made (and its node grid or field uploaded) once."""
@@ -64,7 +67,10 @@ class GraphRenderer:
                 field = FieldTextures.from_field(self.cache.field, self.lights)
             else:
                 positions, search_radius = self.cache.nodes  # the counts stay on disk
-                grid = NodeGrid.build(positions, search_radius, self._node_radiance(estimator))
+                radiance = self._node_radiance(estimator)
+                grid = NodeGrid.build(
+                    positions, search_radius, radiance, gradient=self._gradient(estimator, radiance)
+                )
             integrator = GraphIntegrator(mi.Properties())
             integrator.set_cache(
                 self.medium, self.albedo, self.lights, estimator, grid, field, self.cache.stats["radius"],
@@ -79,6 +85,19 @@ class GraphRenderer:
         if not self.lights.basis:
             return radiance
         return self.lights.mixed(radiance.reshape(self.lights.count, -1, 3))
+
+    def _gradient(self, estimator: str, radiance: np.ndarray) -> np.ndarray | None:
+        """(N, 3, 3) the nodes' radiance gradient, by the operator transport reads each edge
+        with (graph.gradient_operators, params.GRADIENT; made once), where the estimator's node
+        radiance is without the suns' direct light (params.suns_apart; else None)."""
+        if estimator != "gather" or not suns_apart(self.phase.isotropic, self.max_depth):
+            return None
+        if self._gradient_op is None:
+            positions, search_radius = (a.astype(np.float64) for a in self.cache.nodes)
+            self._gradient_op = gradient_operators(
+                positions, search_radius, **GRADIENT, workers=cpu_threads()
+            )
+        return node_gradients(self._gradient_op, radiance)
 
     def set_lights(self, lights: Lights) -> None:
         """New intensities or colours for the cache's lights (:meth:`Lights.of` a scene whose
@@ -95,7 +114,8 @@ class GraphRenderer:
                 rest = integrator.field.mixed_ms(self.cache.field, lights)  # (the suns' are opaque)
                 integrator.field.ms = None if rest is None else linear_texture(rest)
             else:
-                integrator.grid.radiance = to_jit(mi.Color3f, self._node_radiance(estimator))
+                radiance = self._node_radiance(estimator)
+                integrator.grid.set_radiance(radiance, self._gradient(estimator, radiance))
 
     def render(
         self, camera, spp: int, seed: int = 0, estimator: str | None = None, lights: Lights | None = None

@@ -50,7 +50,8 @@ class NodeGrid:
     """Nodes binned into a uniform grid: cell c lists the nodes whose search ball meets it.
 
     Attributes (Dr.Jit arrays):
-        positions, radius2, radiance: per node; radius2 is R_a^2.
+        positions, radius2, radiance: per node; radius2 is R_a^2; gradient: per node its
+            radiance's gradient, one Color3f per axis (None: each node read as its mean).
         cell_start: (cells + 1,) offsets into ``entries``; entries: node ids.
         origin, cell, dims: the grid (scalars).
     """
@@ -63,13 +64,19 @@ class NodeGrid:
     origin: tuple
     cell: float
     dims: tuple
+    gradient: tuple | None = None
 
     @classmethod
     def build(
-        cls, positions: np.ndarray, search_radius: np.ndarray, radiance: np.ndarray, bins=None
+        cls,
+        positions: np.ndarray,
+        search_radius: np.ndarray,
+        radiance: np.ndarray,
+        bins=None,
+        gradient: np.ndarray | None = None,
     ) -> NodeGrid:
-        """N nodes ((N, 3) positions, (N,) ranges, (N, 3) radiance) binned (:func:`node_bins`,
-        unless given), then uploaded."""
+        """N nodes ((N, 3) positions, (N,) ranges, (N, 3) radiance, (N, 3 axes, 3) its gradient
+        or None) binned (:func:`node_bins`, unless given), then uploaded."""
         start, entries, grid = bins if bins is not None else node_bins(positions, search_radius)
         return cls(
             positions=to_jit(mi.Point3f, positions),
@@ -80,11 +87,15 @@ class NodeGrid:
             origin=tuple(float(v) for v in grid[:3]),
             cell=float(grid[3]),
             dims=tuple(int(v) for v in grid[4:]),
+            gradient=None if gradient is None else per_axis(gradient),
         )
 
     @dr.syntax
     def lookup(self, p: mi.Point3f, eps2: float, active: mi.Bool) -> mi.Color3f:
-        """L'_search(p): inverse-squared-distance weighted mean over nodes in range (Eq. 4.25)."""
+        """L'_search(p): inverse-squared-distance weighted mean over nodes in range (Eq. 4.25),
+        each node a read by its plane at p, L_a + grad L_a . (p - x_a), where the grid has the
+        gradients (a first-order Shepard interpolation; linear in the radiance, so that a re-mix
+        of the lights' radiance reads as their mix)."""
         g = (p - mi.Point3f(*self.origin)) / self.cell
         inside = active & dr.all((g >= 0) & (g < mi.Point3f(*self.dims)))
         gi = mi.Vector3u(dr.clip(mi.Vector3i(g), 0, mi.Vector3i(*self.dims) - 1))
@@ -96,11 +107,26 @@ class NodeGrid:
         loop = inside & (i < end)  # an empty cell has nothing to read
         while dr.hint(loop, label="node_gather"):
             a = dr.gather(mi.UInt32, self.entries, i, loop)
-            d2 = dr.squared_norm(p - dr.gather(mi.Point3f, self.positions, a, loop))
+            delta = p - dr.gather(mi.Point3f, self.positions, a, loop)
+            d2 = dr.squared_norm(delta)
             near = loop & (d2 < dr.gather(mi.Float, self.radius2, a, loop))
             w = dr.rcp(dr.maximum(d2, eps2))  # Eq. 4.25: inverse squared distance
             W[near] += w
-            L[near] += w * dr.gather(mi.Color3f, self.radiance, a, near)
+            L_a = dr.gather(mi.Color3f, self.radiance, a, near)
+            if dr.hint(self.gradient is not None, mode="scalar"):  # (Python-level: never in a kernel)
+                for axis, grad in enumerate(self.gradient):
+                    L_a += delta[axis] * dr.gather(mi.Color3f, grad, a, near)
+            L[near] += w * L_a
             i += 1
             loop &= i < end
         return dr.select(W > 0, L / W, 0.0)
+
+    def set_radiance(self, radiance: np.ndarray, gradient: np.ndarray | None = None) -> None:
+        """New node radiance (N, 3) and its gradient (N, 3, 3; None: none) in place (a re-mix)."""
+        self.radiance = to_jit(mi.Color3f, radiance)
+        self.gradient = None if gradient is None else per_axis(gradient)
+
+
+def per_axis(gradient: np.ndarray) -> tuple:
+    """(N, 3 axes, 3) gradients as one Dr.Jit Color3f per axis."""
+    return tuple(to_jit(mi.Color3f, gradient[:, axis, :]) for axis in range(3))

@@ -275,6 +275,36 @@ def test_transitions_read_a_linear_field_where_the_flights_landed():
     np.testing.assert_allclose(bare.transitions(GRADIENT) @ L, graph.collision_matrix() @ L, rtol=1e-12)
 
 
+def test_lookups_read_each_node_by_its_plane_where_they_fall(variant):
+    # Eq. 4.25 averages node means: between nodes on a linear radiance field it reads values of
+    # points near the nodes, not of the point looked up. With each node's gradient (the
+    # operator transport reads the landing points with) the lookup is a first-order Shepard
+    # interpolation: the field itself, to within the gradients' ridge shrinkage.
+    import mitsuba as mi
+
+    from cloudgraph.graph import gradient_operators, node_gradients
+    from cloudgraph.params import GRADIENT
+    from cloudgraph.spatial import NodeGrid
+    from cloudgraph.tracing import from_jit, to_jit
+
+    graph, _, _ = lattice_graph(6, 0.4)
+    positions, ranges = graph.positions.astype(float), graph.search_radius.astype(float)
+    slope = np.array([[0.3, 0.1, -0.2], [-0.2, 0.1, 0.4], [0.5, 0.1, 0.0]])  # (axis, channel)
+    L = 10.0 + positions @ slope
+    points = np.random.default_rng(7).uniform(3.0, 8.0, (4000, 3))
+    exact = 10.0 + points @ slope
+    gradient = node_gradients(gradient_operators(positions, ranges, **GRADIENT), L)
+    np.testing.assert_allclose(gradient[1000], slope, atol=0.05)  # (an inner node's)
+    err = {}
+    for name, g in (("means", None), ("planes", gradient)):
+        grid = NodeGrid.build(positions, ranges, L, gradient=g)
+        read = from_jit(grid.lookup(to_jit(mi.Point3f, points), 1e-4, mi.Bool(True)))
+        err[name] = np.abs(read / exact - 1).mean()
+    # measured, mean relative error: means 0.17 % (at most 1.0 %), planes 0.013 % (at most 0.09 %)
+    assert err["means"] > 0.001
+    assert err["planes"] < 0.15 * err["means"]
+
+
 def test_transitions_read_an_absorbing_medium_s_curved_field_where_the_flights_landed():
     # Where the medium absorbs, radiance falls as exp(-kappa x), kappa^2 = 3 (1 - albedo)
     # sigma_t^2 (diffusion), and a plane through b reads the landing points low by the
@@ -614,6 +644,7 @@ def test_chunks_at_other_offsets_launch_only_kernels_already_compiled(variant, m
     nodes, ranges = points[:300].astype(np.float32), np.full(300, 2.0, np.float32)
     start, entries, grid = node_bins(nodes, ranges)
     looked = {"points": points, "positions": nodes, "search_radius": ranges, "G": np.ones((300, 3))}
+    looked["gradient"] = np.zeros((300, 3, 3))  # (each node read by its plane: the isotropic bake)
     looked.update(start=start, entries=entries, grid=grid)
     stages = (("trace", None), ("flights", flights), ("lighting", lit), ("field_lookup", looked))
     for stage, inputs in stages:
