@@ -128,6 +128,7 @@ def bake_field(
     progress=None,
     phase=None,
     max_depth: int = -1,
+    gradient_op=None,
 ) -> tuple[RadianceField, dict]:
     """Bakes the field of a radiance cache (a variant must be set).
 
@@ -150,6 +151,8 @@ def bake_field(
             and keeps how it depends on the view (``ms_shape``, below).
         max_depth: the scene's (-1: unbounded); bounded, the walks take every event exactly, as
             ``gather`` does, and read no graph.
+        gradient_op: the nodes' gradient operator (graph.gradient_operators, params.GRADIENT) if
+            transport made it (None: made here where the lookups read each node by its plane).
 
     Returns:
         (field, stats): stats hold the bake's seconds per part.
@@ -183,7 +186,9 @@ def bake_field(
     planes = {}
     if sun_exact:
         positions, ranges = (np.asarray(a, np.float64) for a in (graph.positions, graph.search_radius))
-        D = gradient_operators(positions, ranges, **GRADIENT, workers=cpu_threads())
+        D = gradient_op
+        if D is None:
+            D = gradient_operators(positions, ranges, **GRADIENT, workers=cpu_threads())
         planes = {c: {"gradient": node_gradients(D, G)} for c, G in enumerate(node_G)}
     looked = [
         chunks(

@@ -220,6 +220,7 @@ def precompute(
         # The file's bytes (packed and compressed: 0.6-0.9 s on blender) are a late stage too,
         # wanted only at the end: put out after the bins, so that an idle worker takes those first
         filed = chunks(builder, "graph_file", built.to_arrays())
+    gradient_op = None  # the nodes' gradient operator, once transport has made it
     if found is not None:
         (radiance, radiance_gather), rstats = found
     else:
@@ -232,6 +233,7 @@ def precompute(
         albedo = np.tile(graph_albedo, lights.count)
         sigma_t = builder.field.sigma_t_at(graph.positions) if LIGHTING["curvature"] else None
         C = graph.transitions(GRADIENT, cpu_threads(), sigma_t, albedo)
+        gradient_op = C.D
         depth = scene.render.max_depth
 
         def still_wanted():  # progress() raises when the job was cancelled
@@ -276,6 +278,7 @@ def precompute(
             lambda stage, f: progress(stage, 0.95 + 0.05 * f),
             phase=scene.medium.phase,
             max_depth=scene.render.max_depth,
+            gradient_op=gradient_op,
         )
         if not isotropic:  # the page's march applies it to single scattering (api.md)
             field.meta["phase"] = scene.medium.phase.model_dump()
