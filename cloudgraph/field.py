@@ -185,9 +185,9 @@ def bake_field(
     node_G = [component * np.asarray(albedo, np.float32)[None, :] for component in radiance_gather]
     planes = {}
     if sun_exact:
-        positions, ranges = (np.asarray(a, np.float64) for a in (graph.positions, graph.search_radius))
         D = gradient_op
-        if D is None:
+        if D is None:  # (a radiance found in the store: transport did not run)
+            positions, ranges = (np.asarray(a, np.float64) for a in (graph.positions, graph.search_radius))
             D = gradient_operators(positions, ranges, **GRADIENT, workers=cpu_threads())
         planes = {c: {"gradient": node_gradients(D, G)} for c, G in enumerate(node_G)}
     looked = [

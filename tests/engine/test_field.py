@@ -208,6 +208,21 @@ def test_a_back_lit_dense_cloud_s_multiple_scattering_reads_the_sun_where_the_ba
     assert rel_mae(field, gather) < 0.024
 
 
+def test_a_field_baked_again_from_a_stored_radiance_is_the_same(variant, tmp_path):
+    # The bake reads each node by its plane with transport's gradient operator; where the
+    # radiance is found in the store transport does not run, and the bake makes the operator
+    # itself: the same field
+    volume, scale = dense_cloud(2.0)
+    scene = medium_scene(volume, scale, albedo=0.9, eye_dir=SIDE, size=16)
+    first = precompute(scene, volume, "draft", CacheStore(tmp_path))
+    for f in (tmp_path / "fields").iterdir():
+        f.unlink()
+    again = precompute(scene, volume, "draft", CacheStore(tmp_path))
+    assert again.stats["radiance_reused"] and not again.stats["field_reused"]
+    np.testing.assert_array_equal(again.field.radiance_ms, first.field.radiance_ms)
+    np.testing.assert_array_equal(again.field.tau_light, first.field.tau_light)
+
+
 def test_the_fine_tau_grid_holds_the_samples_and_reads_only_baked_points():
     # light_depth.fine_depth: the sub-voxel samples are the fine grid's points where they are;
     # elsewhere the field grid's baked points alone are interpolated (unbaked ones hold junk)
