@@ -139,7 +139,8 @@ def bake_field(
         graph: the :class:`~cloudgraph.graph.Graph` (positions, search ranges, counts).
         radiance_gather: (K, N, 3) node radiance with one scattering event fewer (as ``gather``),
             per light component (lights.py); with the isotropic phase without the suns' direct
-            light (precompute.without_sun), which the bake adds at the grid points from tau_light.
+            light (precompute.without_sun), which the bake's march adds where it reads G, from
+            tau_light.
         albedo: (3,); lights: the scene's :class:`~cloudgraph.lights.Lights`.
         chunks: runs the marches' chunks (:func:`field_chunk`; stages.py), as in ``build_graph``.
         marched: the light marches' results (:func:`march_light`), if already put out.
@@ -187,8 +188,7 @@ def bake_field(
     if sun_exact:
         D = gradient_op
         if D is None:  # (a radiance found in the store: transport did not run)
-            positions, ranges = (np.asarray(a, np.float64) for a in (graph.positions, graph.search_radius))
-            D = gradient_operators(positions, ranges, **GRADIENT, workers=cpu_threads())
+            D = gradient_operators(graph.positions, graph.search_radius, **GRADIENT, workers=cpu_threads())
         planes = {c: {"gradient": node_gradients(D, G)} for c, G in enumerate(node_G)}
     looked = [
         chunks(

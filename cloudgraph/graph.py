@@ -76,12 +76,7 @@ class Graph:
         counts = self.counts.tocsr()
         counts.sort_indices()
         assert np.array_equal(counts.indptr, C.indptr) and np.array_equal(counts.indices, C.indices)
-        D = gradient_operators(
-            self.positions.astype(np.float64),
-            self.search_radius.astype(np.float64),
-            **gradient,
-            workers=workers,
-        )
+        D = gradient_operators(self.positions, self.search_radius, **gradient, workers=workers)
         # S_x, S_y, S_z side by side (N, 3N): column 3 b + axis, against D's rows stacked alike
         n = C.shape[0]
         S = sp.csr_matrix(
@@ -182,7 +177,8 @@ def gradient_operators(
     weighted least-squares plane through its ``nodes`` nearest nodes b, minimising
     sum_b w_b (L_b - L_a - G . (c_b - c_a))^2 + ridge R_a^2 |G|^2, w_b a Gaussian of ``width``
     search ranges R (c: the positions, (N, 3); ``search_radius`` (N,)). A linear L's gradient, to
-    within the ridge's shrinkage (1-5 %)."""
+    within the ridge's shrinkage (1-5 %). Computed in float64 whatever the inputs' type."""
+    positions, search_radius = np.asarray(positions, np.float64), np.asarray(search_radius, np.float64)
     n = len(positions)
     k = min(nodes, n - 1)
     if k < 3:

@@ -93,10 +93,7 @@ class GraphRenderer:
         if estimator != "gather" or not suns_apart(self.phase.isotropic, self.max_depth):
             return None
         if self._gradient_op is None:
-            positions, search_radius = (a.astype(np.float64) for a in self.cache.nodes)
-            self._gradient_op = gradient_operators(
-                positions, search_radius, **GRADIENT, workers=cpu_threads()
-            )
+            self._gradient_op = gradient_operators(*self.cache.nodes, **GRADIENT, workers=cpu_threads())
         return node_gradients(self._gradient_op, radiance)
 
     def set_lights(self, lights: Lights) -> None:
