@@ -43,6 +43,7 @@ from .field_grid import FieldPoints, to_world, unit_points
 from .field_ms import (
     MS_LIGHT_RANGE,
     MS_STEP,
+    forward_orders,
     g_texture,
     gather_ms,
     light_factor,
@@ -179,6 +180,7 @@ def bake_field(
     start, entries, grid = bins if bins is not None else node_bins(graph.positions, graph.search_radius)
     binned = {"start": start, "entries": entries, "grid": grid}
     lobes = None if phase is None or phase.isotropic else np.array(phase.lobes(), float)
+    forward = forward_orders(phase, max_depth)  # (the sun's light in its beam, in closed form)
     # With the isotropic phase the nodes' radiance is without the suns' direct light
     # (precompute.without_sun): the march adds it where it reads G, from tau_light, and each node
     # is read by its plane where a lookup falls, as gather's lookups are (render.py)
@@ -266,6 +268,7 @@ def bake_field(
                 "tail": np.array([int(max_depth < 0)]),
                 "tau": light_depths()[c],  # (a sun's component c is directional light c)
                 "tau_power": np.array([tau_power]),
+                "forward": np.array([forward]),
             }
             walked.append(c)
         gathered.append(chunks(builder, "field_ms", inputs))
@@ -322,6 +325,8 @@ def bake_field(
     }
     if ms_light is not None:
         meta["ms_light"] = ms_light
+    if walked and forward:
+        meta["ms_forward"] = forward
     extra = {}
     if not lights.basis:  # a v1 light
         direction = -towards_light(lights.directions[0])

@@ -24,6 +24,7 @@ from scipy.ndimage import gaussian_filter
 from .phase import (
     SHAPE_DEGREES,
     SHAPE_NORMS,
+    forward_light,
     hg_phase,
     light_frame,
     phase_legendre,
@@ -76,13 +77,16 @@ G_POWER = 0.3
 WALKS = 64
 #: ... and the width (standard deviation, in multiple-scattering grid points) of the Gaussian
 #: that smooths the walks' estimates over the grid: 0 up to |g_eff| = 0.5, WALK_SMOOTH from
-#: 0.85 on, linear between. A peaked phase makes the walks heavy-tailed (next-event estimation
-#: weighted by the peak): on the bench sphere at g = 0.85 (64^2, field against volpath at 16,384
-#: spp, binned relMAE / mean) 128 walks unsmoothed read 8.2 % / 1.040 side-lit and 512 walks
-#: 7.5 % / 1.039, 64 walks smoothed over 2 points 7.9 % / 0.985 (back-lit 4.2 % / 0.984). At
-#: g = 0.5 (draft, against 4096 spp) smoothing costs more than it saves: unsmoothed 3.9 %, over
-#: 1 point 5.9 %, 2 points 8.4 % (gather 3.0 %); smoothing the ratio to the one-flight L_ms
-#: instead read 4.8 % there and 7.9 / 5.5 % at g = 0.85.
+#: 0.85 on, linear between, and 0 where the beam's orders are in closed form (FORWARD_FROM). A
+#: peaked phase makes the walks heavy-tailed (next-event estimation weighted by the peak): on the
+#: bench sphere at g = 0.85 (64^2, field against volpath at 16,384 spp, binned relMAE / mean) 128
+#: walks unsmoothed read 8.2 % / 1.040 side-lit and 512 walks 7.5 % / 1.039, 64 walks smoothed
+#: over 2 points 7.9 % / 0.985 (back-lit 4.2 % / 0.984). At g = 0.5 (draft, against 4096 spp)
+#: smoothing costs more than it saves: unsmoothed 3.9 %, over 1 point 5.9 %, 2 points 8.4 %
+#: (gather 3.0 %). With the beam's orders in closed form the walks' view terms no longer hold
+#: the peak, and smoothing only blurs: the bench's thick cloud at g = 0.85 (field at 16 spp
+#: against gather at 1024, binned relMAE, side-lit albedo 1 / 0.8, back-lit 1 / 0.8) 7.6 / 10.4 /
+#: 3.5 / 2.9 % unsmoothed, 7.2 / 11.5 / 4.2 / 3.0 % over 1 point, 8.4 / 14.3 / 6.9 / 4.0 % over 2.
 WALK_SMOOTH = 2.0
 #: The field keeps each sun's L_ms over a factor of that sun's light, f = exp(-min(P tau_light,
 #: RANGE)), and its readers multiply it back where they read (field.py, :func:`light_factor`): in a
@@ -98,6 +102,23 @@ WALK_SMOOTH = 2.0
 #: dense and thick clouds' 8 views, field against gather within 0.998-1.012 in mean.
 MS_LIGHT_POWER = (0.2, 0.8)
 MS_LIGHT_RANGE = 1.25
+#: An anisotropic phase: the sun's light of this many scattering orders that is still in its
+#: beam is taken in closed form (phase.forward_light), where the camera's march reads it, and
+#: the walks keep only the rest: scattered n times within the forward peak, light from the sun
+#: has crossed the straight path's optical depth tau and its direction has spread as the
+#: phase's n-th power (HG lobes convolve into HG lobes). It is the sharpest part of L_ms in
+#: direction and in space (it falls below a lit surface as the light does), which the walks'
+#: projection on SHAPE_ORDER degrees and their smoothing blurred. The bench at g = 0.85 (64^2,
+#: default, field at 16 spp against gather at 1024 on one cache, binned relMAE; side-lit albedo
+#: 1 / 0.8, back-lit 1 / 0.8), walks alone smoothed over 2 points -> 2 orders unsmoothed: thick
+#: 9.8 / 17.6 / 9.7 / 9.0 % -> 7.6 / 10.4 / 3.5 / 2.9 %, dense 10.3 / 19.1 / 10.1 / 9.0 % ->
+#: 9.1 / 14.8 / 3.1 / 2.9 %, sphere 7.5 / 12.9 / 5.6 / 8.2 % -> 9.7 / 13.7 / 5.7 / 5.9 % (gather's
+#: own noise is 1-4 %). 1 and 3 orders read within a point of 2 (docs/measurements.md). At
+#: g = 0.5 the peak is broad and the straight path's depth a worse guess: thick 2.4 / 2.2 / 2.5 /
+#: 3.4 % -> 2.7 / 3.4 / 1.9 / 2.3 %, sphere 1.8 / 2.4 / 1.8 / 3.3 % -> 2.1 / 2.6 / 2.2 / 4.8 %, so
+#: the closed form is taken from a mean cosine of FORWARD_FROM on (only 0.5 and 0.85 measured).
+FORWARD_ORDERS = 2
+FORWARD_FROM = 0.7
 
 
 def ms_light_power(albedo) -> np.ndarray:
@@ -111,8 +132,18 @@ def light_factor(tau: np.ndarray, power, limit: float) -> np.ndarray:
     return np.exp(-np.minimum(np.asarray(tau, float)[..., None] * np.asarray(power, float), limit))
 
 
+def forward_orders(phase, max_depth: int = -1) -> int:
+    """The orders of a sun's light in its beam that the camera's march takes in closed form
+    (FORWARD_ORDERS), of those after the camera's own event; 0 below FORWARD_FROM."""
+    if phase is None or phase.isotropic or abs(phase.mean_cosine()) < FORWARD_FROM:
+        return 0
+    return FORWARD_ORDERS if max_depth < 0 else max(0, min(FORWARD_ORDERS, max_depth - 1))
+
+
 def walk_smoothing(phase) -> float:
     """The Gaussian's width (grid points) that smooths the walks' estimates (WALK_SMOOTH)."""
+    if forward_orders(phase):
+        return 0.0
     return WALK_SMOOTH * float(np.clip((abs(phase.mean_cosine()) - 0.5) / 0.35, 0.0, 1.0))
 
 
@@ -266,6 +297,10 @@ def walk_ms(medium, G_tex, points: np.ndarray, inputs: dict, seed: int) -> np.nd
     bounces = int(inputs["bounces"][0])
     tail = tail if inputs["tail"][0] else None
     L = phase_walk(medium, lobes, suns, albedo, nothing, tail, o, w, rng, mi.Bool(True), bounces, sun_tr)
+    orders = int(inputs["forward"][0])
+    if orders > 0:  # the beam's part is the camera march's, in closed form (FORWARD_ORDERS)
+        tau_o = depth_at(tau, medium.world_to_unit @ mi.Point3f(o), True, power)
+        L -= suns[0][1] * forward_light(lobes, orders, albedo, tau_o, dr.dot(w, s), 0)
     weight = L / pdf
     dr.eval(weight, w)  # the walks once: each sum below reads them
     # Projected per point: the sums over a point's k consecutive walks

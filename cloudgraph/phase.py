@@ -101,6 +101,40 @@ def phase_legendre(lobes: tuple, order: int) -> np.ndarray:
     return sum(w * float(g) ** np.arange(order + 1) for w, g in lobes)
 
 
+def lobe_power(lobes: tuple, n: int) -> tuple:
+    """The lobes ((weight, g), ...) of the phase convolved with itself ``n`` times (n >= 1):
+    HG lobes convolve into one lobe of the product of their g (their Legendre moments g^l
+    multiply), so a blend's n-th power is a blend of lobes of every product, equal g merged."""
+    out = {1.0: 1.0}  # (a delta: g = 1)
+    for _ in range(n):
+        nxt: dict = {}
+        for g0, w0 in out.items():
+            for w, g in lobes:
+                key = round(g0 * float(g), 12)
+                nxt[key] = nxt.get(key, 0.0) + w0 * float(w)
+        out = nxt
+    return tuple((w, g) for g, w in out.items())
+
+
+def forward_light(
+    lobes: tuple, orders: int, albedo: mi.Color3f, tau: mi.Float, mu: mi.Float, more: int
+) -> mi.Color3f:
+    """The sun's light of the first ``orders`` scattering orders that is still in its beam, per
+    unit irradiance, as a function of mu = to_light . w (module docstring of field_ms.py,
+    FORWARD_ORDERS): light scattered n times within a forward peak has crossed the optical
+    depth tau of the straight path from the sun, and its direction spread as the phase's n-th
+    power,  sum_n exp(-tau) (albedo tau)^n / n! p^{*(n + more)}(mu)  (``more`` convolutions with
+    the phase more: 0 for the radiance arriving at a point, 1 for what it scatters into a
+    camera ray)."""
+    T = dr.exp(-tau)
+    term = mi.Color3f(1.0)
+    L = mi.Color3f(0.0)
+    for n in range(1, orders + 1):  # unrolled
+        term = term * albedo * (tau / n)
+        L += T * term * hg_phase(lobe_power(lobes, n + more), mu)
+    return L
+
+
 def phase_bounces(phase) -> int:
     """Exact scattering events of ``gather`` before the graph takes over: 1 for the isotropic
     phase, else the least k with |g_eff|^k <= PHASE_MEMORY (g = 0.5: 6, g = 0.85: 25), at most

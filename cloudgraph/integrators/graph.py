@@ -59,7 +59,7 @@ import numpy as np
 from ..errors import SceneError
 from ..mitsuba_scene import envmap_emitter
 from ..options import ESTIMATORS, PHASE_ESTIMATORS
-from ..phase import hg_phase, phase_bounces, phase_walk, shape_basis
+from ..phase import forward_light, hg_phase, phase_bounces, phase_walk, shape_basis
 from ..spatial import NodeGrid
 from ..tracing import (
     BLOCK,
@@ -120,6 +120,7 @@ class FieldTextures:
     max_dtau: float
     edge: float
     max_steps: int
+    forward: int = 0
 
     @staticmethod
     def mixed_ms(field, lights) -> np.ndarray | None:
@@ -160,6 +161,7 @@ class FieldTextures:
             max_dtau=max_dtau,
             edge=float(field.meta["edge"]),
             max_steps=int(2 * (diag / step + dense + 3 * blocks) + 16),
+            forward=int(field.meta.get("ms_forward", 0)),
         )
 
 
@@ -366,10 +368,13 @@ class GraphIntegrator(mi.SamplingIntegrator):
             if any(power):
                 sun *= dr.exp(-dr.minimum(mi.Color3f(*power) * taus[k], limit))
             L_ms += sun
-        for tex, view in zip(f.shape, views, strict=True):  # the suns, unrolled
+        for k, (tex, view) in enumerate(zip(f.shape, views, strict=True)):  # the suns, unrolled
             if view is not None:
                 c = tex.eval(pu, active)
                 L_ms += view[0] * sum((c[i] * P for i, P in enumerate(view[1])), mi.Float(0.0))
+                if f.forward:  # the sun's light still in its beam, in closed form (field_ms.py)
+                    albedo = mi.Color3f(*self.albedo)
+                    L_ms += view[0] * forward_light(self.lobes, f.forward, albedo, taus[k], view[2], 1)
         if any(view is not None for view in views):  # (the series can ring below 0)
             L_ms = dr.maximum(L_ms, 0.0)
         sigma_t = self.medium.texture.eval(pu, active)[0] * self.medium.scale
@@ -381,8 +386,12 @@ class GraphIntegrator(mi.SamplingIntegrator):
         return [
             None
             if frame is None
-            else (E, shape_basis(*(dr.dot(mi.Vector3f(*map(float, e)), d) for e in frame)))
-            for frame, E in zip(self.field.frame, self.irradiance, strict=True)
+            else (
+                E,
+                shape_basis(*(dr.dot(mi.Vector3f(*map(float, e)), d) for e in frame)),
+                dr.dot(mi.Vector3f(*to_light), d),
+            )
+            for frame, E, to_light in zip(self.field.frame, self.irradiance, self.to_light, strict=True)
         ]
 
     def _tau_light(self, k, pu, active):

@@ -8,6 +8,7 @@ then float16 little-endian C-order arrays at 16-byte aligned offsets.
 from __future__ import annotations
 
 import gzip
+import itertools
 import json
 import math
 
@@ -370,6 +371,11 @@ def reference_render(
                 if basis is not None:
                     view = (_sample(v[sun["shape"]["array"]], p) * basis[idx]).sum(axis=1)
                     rad = rad + 4 * math.pi * e * view[:, None]
+                    if h.get("ms_forward"):  # the sun's light still in its beam, in closed form
+                        to_light = -np.asarray(sun["direction"], float)
+                        mu = d[idx] @ (to_light / np.linalg.norm(to_light))
+                        tau = _tau_light(h, v, p, sun)
+                        rad = rad + 4 * math.pi * e * forward_light(lobes, h["ms_forward"], albedo, tau, mu)
             rad = np.maximum(rad, 0.0)
         a = np.exp(-s * dt[idx])
         L_in = rad.copy()  # sum over suns E p exp(-tau) + L_ms
@@ -382,6 +388,20 @@ def reference_render(
     x = np.clip(L * 2.0**exposure, 0, 1)
     srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
     return np.round(srgb * 255).reshape(camera["height"], camera["width"], 3)
+
+
+def forward_light(lobes, orders: int, albedo, tau, mu) -> np.ndarray:
+    """(M, 3) sum_n exp(-tau) (albedo tau)^n / n! p^(n+1)(mu), n = 1..orders, per steradian
+    (api.md, ms_forward): p^m, the phase convolved with itself m times, is the blend of HG lobes of
+    every product of m of its lobes' g, weighted by the product of their weights."""
+    out = np.zeros((len(tau), 3))
+    for n in range(1, orders + 1):
+        power = sum(
+            np.prod([w for w, _ in pick]) * hg4pi(np.prod([g for _, g in pick]), mu)
+            for pick in itertools.product(lobes, repeat=n + 1)
+        ) / (4 * math.pi)
+        out += (np.exp(-tau) * tau**n / math.factorial(n) * power)[:, None] * np.asarray(albedo) ** n
+    return out
 
 
 def rel_mae(test: np.ndarray, ref: np.ndarray) -> float:

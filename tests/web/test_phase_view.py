@@ -71,6 +71,37 @@ def test_the_page_adds_the_view_terms_of_an_anisotropic_field(page):  # noqa: F8
         assert rel_mae(without, ref) > 0.1, "the view terms changed little: a useless test"
 
 
+@pytest.mark.parametrize(
+    "phase, lobes",
+    [
+        ({"type": "hg", "g": 0.85}, [(1.0, 0.85)]),
+        ({"type": "hg2", "g": [0.8, -0.3], "weight": 0.7}, [(0.7, 0.8), (0.3, -0.3)]),
+    ],
+)
+def test_the_page_adds_the_sun_s_light_in_its_beam_in_closed_form(page, phase, lobes):  # noqa: F811
+    # A field whose header has ms_forward (api.md): the march adds the sun's light of its first
+    # orders still in its beam, sum_n e^-tau (albedo tau)^n / n! p^(n+1)(to_light . d), to each
+    # shaped sun's L_ms, as the server's does, against the numpy march (its own lobe products)
+    field, without = make_field(), make_field()
+    for f in (field, without):
+        f["header"]["phase"] = phase
+        f["header"]["light"]["irradiance"] = [0.5, 0.45, 0.4]
+        light_depth_from_above(f)
+        add_view_terms(f)
+    field["header"]["ms_forward"] = 2
+    lo, hi = (np.asarray(v) for v in field["header"]["world_bbox"])
+    c, r = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
+    cams = [
+        camera(c + r * np.array([0.1, -1.1, 0.2]), c, fov=50),  # from below, into the light
+        camera(c + r * np.array([1.2, 0.1, 0.3]), c),  # from the side
+    ]
+    for cam, img, plain in zip(cams, render(page, field, cams), render(page, without, cams), strict=True):
+        ref = reference_render(field, cam, lobes=lobes)
+        assert ref.mean() > 5, "the reference image is black: a useless test"
+        assert rel_mae(img, ref) < 0.025
+        assert rel_mae(plain, ref) > 0.05, "the beam's light changed little: a useless test"
+
+
 def test_the_view_terms_are_the_engine_s_functions_of_direction():
     # The page's and the numpy march's functions (written out) are the engine's (phase.py's
     # derivatives of Legendre polynomials), term by term

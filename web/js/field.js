@@ -15,6 +15,10 @@ export class FieldError extends Error {
 
 /** Channels of an ms_shape array: the functions of direction of cloudgraph/phase.py's
  * SHAPE_TERMS (shaders.js writes them out). */
+/** The most orders of the suns' light in their beam a field's header may name (ms_forward;
+ * cloudgraph/field_ms.py FORWARD_ORDERS). */
+export const MAX_FORWARD = 3;
+
 export const SHAPE_TERMS = 14;
 
 const ARRAYS = {
@@ -115,6 +119,12 @@ export function decodeField(buffer) {
   if (msLight && (!lights.suns.length || !(msLight.range >= 0) || !msLight.power.every((p) => p >= 0))) {
     throw new FieldError("the field's header has no valid ms_light (power >= 0, range >= 0, a sun)");
   }
+  // an anisotropic phase's suns: the orders of their light in its beam the march adds in
+  // closed form (absent: none)
+  const forward = Number(header.ms_forward ?? 0);
+  if (!(Number.isInteger(forward) && forward >= 0 && forward <= MAX_FORWARD)) {
+    throw new FieldError(`the field's header has no valid ms_forward (an integer 0..${MAX_FORWARD})`);
+  }
   const backgrounds = lights.components.filter((c) => c.background).map((c) => arrays[c.background].shape);
   for (const c of lights.components) {
     if (arrays[c.ms].shape.join() !== arrays.radiance_ms.shape.join()) {
@@ -153,6 +163,7 @@ export function decodeField(buffer) {
     edge,
     tauPower,
     msLight,
+    forward,
     arrays,
     bytes: buffer.byteLength,
   };

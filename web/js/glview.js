@@ -347,6 +347,7 @@ export class GLView {
       textureBytes: GLView.textureBytes(field),
       radianceKey: field.header.radiance_key,
       phase: phaseLobes(field.header.phase),
+      forward: field.forward,
       // per shaped sun: its view terms' scales, four a texture (zero past the last), and frame
       shapes: shaped.map((k) => {
         const shape = field.arrays[field.suns[k].shape.array];
@@ -438,6 +439,7 @@ export class GLView {
     }
     set("uniform1i", "uAnisotropic", f.phase ? 1 : 0);
     set("uniform3fv", "uPhase", f.phase || [0, 0, 1]);
+    set("uniform1i", "uBeamOrders", f.phase ? f.forward : 0);
     if (!fast) {
       for (const { sun, scale, frame } of f.shapes) {
         set("uniform4fv", `uShapeScale${sun}[0]`, scale);

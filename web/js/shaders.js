@@ -23,6 +23,8 @@
 // background along d) at the ray's end.
 // then display: clamp(L 2^exposure, 0, 1) through the sRGB transfer.
 
+import { MAX_FORWARD } from "./field.js";
+
 export const VERTEX = `#version 300 es
 // One triangle that covers the viewport; no vertex buffer.
 void main() {
@@ -81,7 +83,8 @@ vec4 gB${k}[4];                  // its functions of direction at the ray's dire
       (k) => `  view += uDirect[${k}] * (dot(texture(uShape${k}_0, p) * uShapeScale${k}[0], gB${k}[0])
               + dot(texture(uShape${k}_1, p) * uShapeScale${k}[1], gB${k}[1])
               + dot(texture(uShape${k}_2, p) * uShapeScale${k}[2], gB${k}[2])
-              + dot(texture(uShape${k}_3, p) * uShapeScale${k}[3], gB${k}[3]));`,
+              + dot(texture(uShape${k}_3, p) * uShapeScale${k}[3], gB${k}[3]))
+              + uDirect[${k}] * forwardLight(${k}, s.tau[${k}]);`,
     )
     .join("\n");
   // with ms_light each sun's L_ms is a texture of its own, over its light factor
@@ -134,6 +137,8 @@ ${sunMsDecls}
 uniform vec3 uDirect[NS];     // each sun's irradiance / 4pi (times phaseFactor per ray)
 uniform bool uAnisotropic;    // whether the phase is Henyey-Greenstein, not isotropic
 uniform vec3 uPhase;          // its lobes: g1, g2, the first's weight (g > 0 forward)
+uniform int uBeamOrders;        // the header's ms_forward: orders of the suns' light in their beam
+                              // in closed form (0: none; at most MAX_FORWARD)
 uniform vec3 uToLight[NS];    // unit direction toward each sun, world
 uniform vec3 uAlbedo;
 uniform float uGain;          // 2^exposure
@@ -173,6 +178,39 @@ float phaseFactor(vec3 toLight, vec3 d) {
   if (!uAnisotropic) return 1.0;
   float mu = dot(toLight, d);
   return uPhase.z * hg4pi(uPhase.x, mu) + (1.0 - uPhase.z) * hg4pi(uPhase.y, mu);
+}
+
+// The phase convolved with itself n times at cosine mu, per steradian: its lobes' products,
+// sum_k C(n, k) w^k (1 - w)^(n - k) HG(g1^k g2^(n - k)) (HG lobes convolve into HG lobes).
+float phasePower(int n, float mu) {
+  float p = 0.0;
+  for (int k = 0; k <= n; k++) {
+    float c = 1.0, g = 1.0;
+    for (int j = 0; j < n; j++) {  // C(n, k) w^k (1 - w)^(n - k), g1^k g2^(n - k), no pow(0, 0)
+      bool first = j < k;
+      c *= first ? uPhase.z * float(n - j) / float(k - j) : 1.0 - uPhase.z;
+      g *= first ? uPhase.x : uPhase.y;
+    }
+    p += c * hg4pi(g, mu);
+  }
+  return p / (4.0 * 3.14159265358979);
+}
+
+const int MAX_FORWARD = ${MAX_FORWARD};
+float gForward[NS * MAX_FORWARD]; // per sun, the phase's powers 2 .. uBeamOrders + 1 at the ray's mu
+
+// The sun's light of the first uBeamOrders orders still in its beam, scattered into the ray, per
+// unit irradiance (cloudgraph/phase.py forward_light): sum_n e^-tau (albedo tau)^n / n! p^(n+1).
+vec3 forwardLight(int k, float tau) {
+  vec3 term = vec3(1.0);
+  vec3 sum = vec3(0.0);
+  float T = exp(-tau);
+  for (int n = 1; n <= MAX_FORWARD; n++) {
+    if (n > uBeamOrders) break;
+    term *= uAlbedo * (tau / float(n));
+    sum += T * term * gForward[k * MAX_FORWARD + n - 1];
+  }
+  return sum;
 }
 
 // The view terms' functions of direction at v, the ray's direction in a sun's frame (constant
@@ -233,7 +271,10 @@ Sample sampleAt(vec3 p) {
   s.ms = v.gba;
 #if SUN_T
   vec4 sunT = textureLod(uSunT, p, uLod);
-  for (int k = 0; k < SUNS; k++) s.ms += gDirect[k] * sunT[k];
+  for (int k = 0; k < SUNS; k++) {
+    s.ms += gDirect[k] * sunT[k];
+    if (uBeamOrders > 0) s.ms += (4.0 * 3.14159265358979) * uDirect[k] * forwardLight(k, -log(max(sunT[k], 1e-7)));
+  }
 #endif
 #else
   s.sigma = texture(uDens, p).r * uSigmaScale;
@@ -267,6 +308,11 @@ void main() {
   vec3 direct[NS];              // E p per sun: single scattering's, constant along the ray
   for (int k = 0; k < SUNS; k++) direct[k] = uDirect[k] * phaseFactor(uToLight[k], d);
   gDirect = direct;
+  for (int k = 0; k < SUNS; k++) {
+    for (int n = 1; n <= MAX_FORWARD; n++) {
+      gForward[k * MAX_FORWARD + n - 1] = n <= uBeamOrders ? phasePower(n + 1, dot(uToLight[k], d)) : 0.0;
+    }
+  }
 ${basisLines}
   float Tr = 1.0;               // transmittance from the eye
   if (tEnd > t) {
