@@ -61,9 +61,10 @@ def graph_key(vol_id: str, density_scale: float, build_params: dict) -> str:
 
 
 #: The bake of an anisotropic phase's field (field.py): 2 since its L_ms depends on the view
-#: (``ms_shape``). Its caches' radiance keys hold it, so that fields baked before are baked
+#: (``ms_shape``), 3 since the sun's light in its beam is the march's in closed form
+#: (``ms_forward``). Its caches' radiance keys hold it, so that fields baked before are baked
 #: again; isotropic keys are as they were.
-PHASE_FIELD_VERSION = 2
+PHASE_FIELD_VERSION = 3
 
 
 def radiance_key(

@@ -135,7 +135,7 @@ LIGHTING = {
     "samples": 16,
     "tol": 1e-5,
     "transport": "krylov",
-    "field": 10,
+    "field": 9,
     "gather": 2,
     "landing": GRADIENT,
     "curvature": True,
