@@ -264,7 +264,9 @@ def walk_ms(medium, G_tex, points: np.ndarray, inputs: dict, seed: int) -> np.nd
         c_i = g_l(i) int B_i(w) L(x, w) dw / int B_i^2,
 
     with L(x, w) the radiance that a walk from x along w brings back (phase.phase_walk: the
-    medium's next events exact, the graph's ``G`` after them; x's own event is the camera's).
+    medium's next events exact, the graph's ``G`` after them; x's own event is the camera's),
+    less the sun's light still in its beam where ``inputs["forward"]`` orders of it are the
+    camera march's, in closed form (FORWARD_ORDERS).
     WALKS walks a point, their first directions half uniform and half from the phase about the
     light (one-sample mixture pdf). Returns c_0 (RGB) and the c_i at unit intensity (the
     channels' mean over the irradiance's), so that the scene's mix scales them."""

@@ -120,12 +120,12 @@ def forward_light(
     lobes: tuple, orders: int, albedo: mi.Color3f, tau: mi.Float, mu: mi.Float, more: int
 ) -> mi.Color3f:
     """The sun's light of the first ``orders`` scattering orders that is still in its beam, per
-    unit irradiance, as a function of mu = to_light . w (module docstring of field_ms.py,
-    FORWARD_ORDERS): light scattered n times within a forward peak has crossed the optical
-    depth tau of the straight path from the sun, and its direction spread as the phase's n-th
-    power,  sum_n exp(-tau) (albedo tau)^n / n! p^{*(n + more)}(mu)  (``more`` convolutions with
-    the phase more: 0 for the radiance arriving at a point, 1 for what it scatters into a
-    camera ray)."""
+    unit irradiance, as a function of mu = to_light . w (field_ms.FORWARD_ORDERS): light
+    scattered n times within a forward peak has crossed the optical depth tau of the straight
+    path from the sun, and its direction spread as the phase's n-th power,
+    sum_n exp(-tau) (albedo tau)^n / n! p^{*(n + more)}(mu)  (``more`` convolutions with the
+    phase more: 0 for the radiance arriving at a point, 1 for what it scatters into a camera
+    ray)."""
     T = dr.exp(-tau)
     term = mi.Color3f(1.0)
     L = mi.Color3f(0.0)

@@ -13,12 +13,12 @@ export class FieldError extends Error {
   }
 }
 
-/** Channels of an ms_shape array: the functions of direction of cloudgraph/phase.py's
- * SHAPE_TERMS (shaders.js writes them out). */
 /** The most orders of the suns' light in their beam a field's header may name (ms_forward;
  * cloudgraph/field_ms.py FORWARD_ORDERS). */
 export const MAX_FORWARD = 3;
 
+/** Channels of an ms_shape array: the functions of direction of cloudgraph/phase.py's
+ * SHAPE_TERMS (shaders.js writes them out). */
 export const SHAPE_TERMS = 14;
 
 const ARRAYS = {
