@@ -24,6 +24,7 @@ from scipy.ndimage import gaussian_filter
 from .phase import (
     SHAPE_DEGREES,
     SHAPE_NORMS,
+    beam_phases,
     forward_light,
     hg_phase,
     light_frame,
@@ -302,7 +303,7 @@ def walk_ms(medium, G_tex, points: np.ndarray, inputs: dict, seed: int) -> np.nd
     orders = int(inputs["forward"][0])
     if orders > 0:  # the beam's part is the camera march's, in closed form (FORWARD_ORDERS)
         tau_o = depth_at(tau, medium.world_to_unit @ mi.Point3f(o), True, power)
-        L -= suns[0][1] * forward_light(lobes, orders, albedo, tau_o, dr.dot(w, s), 0)
+        L -= suns[0][1] * forward_light(albedo, tau_o, beam_phases(lobes, orders, dr.dot(w, s), 0))
     weight = L / pdf
     dr.eval(weight, w)  # the walks once: each sum below reads them
     # Projected per point: the sums over a point's k consecutive walks

@@ -116,22 +116,25 @@ def lobe_power(lobes: tuple, n: int) -> tuple:
     return tuple((w, g) for g, w in out.items())
 
 
-def forward_light(
-    lobes: tuple, orders: int, albedo: mi.Color3f, tau: mi.Float, mu: mi.Float, more: int
-) -> mi.Color3f:
-    """The sun's light of the first ``orders`` scattering orders that is still in its beam, per
-    unit irradiance, as a function of mu = to_light . w (field_ms.FORWARD_ORDERS): light
-    scattered n times within a forward peak has crossed the optical depth tau of the straight
-    path from the sun, and its direction spread as the phase's n-th power,
-    sum_n exp(-tau) (albedo tau)^n / n! p^{*(n + more)}(mu)  (``more`` convolutions with the
-    phase more: 0 for the radiance arriving at a point, 1 for what it scatters into a camera
-    ray)."""
+def beam_phases(lobes: tuple, orders: int, mu: mi.Float, more: int) -> list:
+    """The phase's powers p^{*(n + more)}(mu), n = 1..``orders``, that :func:`forward_light`
+    weights (constant along a camera ray: computed once per ray, not per step)."""
+    return [hg_phase(lobe_power(lobes, n + more), mu) for n in range(1, orders + 1)]
+
+
+def forward_light(albedo: mi.Color3f, tau: mi.Float, phases: list) -> mi.Color3f:
+    """The sun's light of the first ``len(phases)`` scattering orders that is still in its beam,
+    per unit irradiance (field_ms.FORWARD_ORDERS): light scattered n times within a forward peak
+    has crossed the optical depth tau of the straight path from the sun, and its direction
+    spread as the phase's n-th power,  sum_n exp(-tau) (albedo tau)^n / n! phases[n - 1], with
+    ``phases`` :func:`beam_phases` at mu = to_light . w (``more`` convolutions with the phase
+    more: 0 for the radiance arriving at a point, 1 for what it scatters into a camera ray)."""
     T = dr.exp(-tau)
     term = mi.Color3f(1.0)
     L = mi.Color3f(0.0)
-    for n in range(1, orders + 1):  # unrolled
+    for n, p in enumerate(phases, start=1):  # unrolled
         term = term * albedo * (tau / n)
-        L += T * term * hg_phase(lobe_power(lobes, n + more), mu)
+        L += T * term * p
     return L
 
 

@@ -59,7 +59,7 @@ import numpy as np
 from ..errors import SceneError
 from ..mitsuba_scene import envmap_emitter
 from ..options import ESTIMATORS, PHASE_ESTIMATORS
-from ..phase import forward_light, hg_phase, phase_bounces, phase_walk, shape_basis
+from ..phase import beam_phases, forward_light, hg_phase, phase_bounces, phase_walk, shape_basis
 from ..spatial import NodeGrid
 from ..tracing import (
     BLOCK,
@@ -372,24 +372,24 @@ class GraphIntegrator(mi.SamplingIntegrator):
             if view is not None:
                 c = tex.eval(pu, active)
                 L_ms += view[0] * sum((c[i] * P for i, P in enumerate(view[1])), mi.Float(0.0))
-                if f.forward:  # the sun's light still in its beam, in closed form (field_ms.py)
-                    albedo = mi.Color3f(*self.albedo)
-                    L_ms += view[0] * forward_light(self.lobes, f.forward, albedo, taus[k], view[2], 1)
+                if view[2]:  # the sun's light still in its beam, in closed form (field_ms.py)
+                    L_ms += view[0] * forward_light(mi.Color3f(*self.albedo), taus[k], view[2])
         if any(view is not None for view in views):  # (the series can ring below 0)
             L_ms = dr.maximum(L_ms, 0.0)
         sigma_t = self.medium.texture.eval(pu, active)[0] * self.medium.scale
         return sigma_t, taus, L_ms
 
     def _views(self, d):
-        """Per directional light: (E, the shape's basis functions at d), constant along a ray,
-        where the field holds the light's ``ms_shape`` (else None)."""
+        """Per directional light: (E, the shape's basis functions at d, the phase's powers of
+        its beam's light at to_light . d (phase.beam_phases; [] where the field has none)),
+        constant along a ray, where the field holds the light's ``ms_shape`` (else None)."""
         return [
             None
             if frame is None
             else (
                 E,
                 shape_basis(*(dr.dot(mi.Vector3f(*map(float, e)), d) for e in frame)),
-                dr.dot(mi.Vector3f(*to_light), d),
+                beam_phases(self.lobes, self.field.forward, dr.dot(mi.Vector3f(*to_light), d), 1),
             )
             for frame, E, to_light in zip(self.field.frame, self.irradiance, self.to_light, strict=True)
         ]

@@ -15,7 +15,7 @@ from cloudgraph.precompute import precompute
 from cloudgraph.procedural import box_volume, sphere_volume
 from cloudgraph.scene import PhaseSpec, json_schema, parse_scene
 
-from ..helpers import box_interval, pixel_rays, reference
+from ..helpers import LIGHT, box_interval, dense_cloud, medium_scene, pixel_rays, reference
 
 
 def hg(g: float, mu):
@@ -421,8 +421,6 @@ def test_a_back_lit_dense_cloud_s_forward_light_is_the_march_s_in_closed_form(va
     # binned relMAE / mean): 2.2 % / 0.996; the walks alone, smoothed over 2 points (the field of
     # before), 12.8 % / 0.941
     import cloudgraph.field_ms as field_ms
-
-    from ..helpers import LIGHT, dense_cloud, medium_scene
 
     volume, scale = dense_cloud(2.0)
     scene = with_phase(

@@ -137,7 +137,7 @@ ${sunMsDecls}
 uniform vec3 uDirect[NS];     // each sun's irradiance / 4pi (times phaseFactor per ray)
 uniform bool uAnisotropic;    // whether the phase is Henyey-Greenstein, not isotropic
 uniform vec3 uPhase;          // its lobes: g1, g2, the first's weight (g > 0 forward)
-uniform int uBeamOrders;        // the header's ms_forward: orders of the suns' light in their beam
+uniform int uBeamOrders;      // the header's ms_forward: orders of the suns' light in their beam
                               // in closed form (0: none; at most MAX_FORWARD)
 uniform vec3 uToLight[NS];    // unit direction toward each sun, world
 uniform vec3 uAlbedo;
