@@ -102,6 +102,28 @@ def test_new_intensities_re_mix_a_drawn_field(page):  # noqa: F811
             assert rel_mae(reference_render(field, cam, mix=before), ref) > 0.15
 
 
+@pytest.mark.parametrize("suns", [2, 3])
+def test_moving_frames_weight_each_sun_by_its_phase(page, suns):  # noqa: F811
+    # the moving texture of an anisotropic field holds each sun's transmittance apart (two suns:
+    # two channels; three: RGBA, padded), weighted per ray by that sun's E p(to_light . d)
+    field, iso = make_field(), make_field()
+    for f in (field, iso):
+        add_lights(f, DIRECTIONS[:suns])
+    field["header"]["phase"] = {"type": "hg", "g": 0.7}
+    mix = {"suns": [[4.0, 3.6, 3.2], [3.0, 3.0, 3.0], [4.0, 3.2, 2.4]][:suns]}  # single scattering the most
+    cams = cameras(field)
+    images = zip(
+        render(page, field, cams, fast=True, mix=mix),
+        render(page, iso, cams, fast=True, mix=mix),
+        strict=True,
+    )
+    for cam, (img, plain) in zip(cams, images, strict=True):
+        ref = reference_render(field, cam, lobes=[(1.0, 0.7)], mix=mix)
+        assert ref.mean() > 5, "the reference image is black: a useless test"
+        assert rel_mae(img, ref) < 0.02  # measured 0.3-0.8 %; the isotropic phase 5-17 %
+        assert rel_mae(plain, ref) > 0.04, "the phase changed little: a useless test"
+
+
 def test_each_sun_s_view_terms_with_forward_scattering(page):  # noqa: F811
     # an anisotropic phase: each sun's single scattering weighted by the phase about it, and its
     # view terms in its own frame

@@ -145,8 +145,15 @@ export function mixedBackground(field, intensities) {
 }
 
 /** Suns whose transmittance the moving camera's texture of an anisotropic field holds apart
- * (one RGBA texture: packedField's ``sunT``). */
+ * (one texture: packedField's ``sunT``). */
 export const MOVING_PHASE_SUNS = 4;
+
+/** Channels a GPU keeps per texel of a texture of a channel a sun for the next ``suns`` suns, at
+ * most four (RGB padded to RGBA). */
+export function texelChannels(suns) {
+  const n = Math.min(4, Math.max(0, suns));
+  return n === 3 ? 4 : n;
+}
 
 /**
  * The moving camera's texture: per density voxel (sigma_t / scale, L_in r, g, b) with
@@ -155,8 +162,9 @@ export const MOVING_PHASE_SUNS = 4;
  * ``mix`` (glview.js): { direct: per sun E / 4pi, ms: mixedRadiance's, sunMs: per sun its own
  * (with ms_light; else empty) }. With ``phase`` (an
  * anisotropic field, at most MOVING_PHASE_SUNS suns) L_in is L_ms alone, whose view terms it
- * leaves out, and ``sunT`` holds each sun's exp(-tau_light) per voxel (RGBA): the shader weights
- * them by E p per ray. Returns { packed, sunT (or null) }, float32 RGBA.
+ * leaves out, and ``sunT`` holds each sun's exp(-tau_light) per voxel (texelChannels a voxel: a
+ * moving step's second fetch reads no more than it needs): the shader weights them by E p per
+ * ray. Returns { packed (float32 RGBA), sunT (or null) }.
  */
 export function packedField(field, mix, { phase = false } = {}) {
   const { sigma_t, radiance_ms } = field.arrays;
@@ -171,7 +179,8 @@ export function packedField(field, mix, { phase = false } = {}) {
   const Y = axisWeights(ny, my);
   const Z = axisWeights(nz, mz);
   const out = new Float32Array(4 * nx * ny * nz);
-  const sunT = phase ? new Float32Array(4 * nx * ny * nz) : null;
+  const nt = texelChannels(taus.length);
+  const sunT = phase ? new Float32Array(nt * nx * ny * nz) : null;
   const c = [0, 0, 0];
   let v = 0;
   for (let k = 0; k < nz; k++) {
@@ -210,7 +219,7 @@ export function packedField(field, mix, { phase = false } = {}) {
         for (let s = 0; s < taus.length; s++) {
           const direct = taus[s][v];
           if (sunT) {
-            sunT[4 * v + s] = direct;
+            sunT[nt * v + s] = direct;
           } else {
             er += mix.direct[s][0] * direct;
             eg += mix.direct[s][1] * direct;

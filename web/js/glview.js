@@ -2,7 +2,7 @@
 // read-back of an image at a given size for comparisons. Knows nothing of the DOM around it.
 
 import { fragmentShader, textureUnits, VERTEX } from "./shaders.js";
-import { channelGroup, depthTexels, halfFloats, interleaved, mixedBackground, mixedRadiance, MOVING_PHASE_SUNS, packedField } from "./fieldtex.js";
+import { channelGroup, depthTexels, halfFloats, interleaved, mixedBackground, mixedRadiance, MOVING_PHASE_SUNS, packedField, texelChannels } from "./fieldtex.js";
 import { SHAPE_TERMS } from "./field.js";
 import { linearToSrgb8, srgbToLinear } from "./imagemath.js";
 import { cross, normalize, sub } from "./camera.js";
@@ -15,12 +15,6 @@ const TAU_FORMATS = [
   ["RGBA16F", "RGBA"],
 ];
 
-/** Channels a GPU keeps per texel of a tau texture of the next ``suns`` suns, at most four
- * (RGB padded to RGBA). */
-function texelChannels(suns) {
-  const n = Math.min(4, Math.max(0, suns));
-  return n === 3 ? 4 : n;
-}
 
 /** Why this browser cannot draw the real-time view, or "" when it can. */
 export function webgl2Missing(canvas) {
@@ -162,13 +156,14 @@ export class GLView {
   /**
    * GPU bytes of a field's textures: R16F density, 16F textures of the suns' tau (a channel
    * each, at the tau grid's resolution), RGBA16F-padded radiance (with ms_light each sun's apart too), R16F majorant, the RGBA16F (sigma_t, L_in) texture of the
-   * moving camera with its mipmaps (and of an anisotropic field its suns' transmittance), four RGBA16F textures of view terms a shaped sun, and an
+   * moving camera with its mipmaps (and of an anisotropic field its suns' transmittance, 16F a
+   * channel each, RGB padded), four RGBA16F textures of view terms a shaped sun, and an
    * RGBA16F-padded lat-long background of the environment maps.
    */
   static textureBytes(field) {
     const count = (a) => a.shape[0] * a.shape[1] * a.shape[2];
     const { sigma_t, radiance_ms, majorant } = field.arrays;
-    const moving = ((movingPhase(field) ? 2 : 1) * 8 * 8) / 7; // the moving textures, with mips
+    const moving = ((8 + (movingPhase(field) ? 2 * texelChannels(field.suns.length) : 0)) * 8) / 7; // with mips
     const density = 2 + moving;
     const taus = [0, 4].reduce((b, from) => b + 2 * texelChannels(field.suns.length - from) * count(field.arrays.tau_light), 0);
     const shape = shapedSuns(field).reduce((n, k) => n + 8 * Math.ceil(SHAPE_TERMS / 4) * count(field.arrays[field.suns[k].shape.array]), 0);
@@ -240,18 +235,21 @@ export class GLView {
   makeMoving(field, m) {
     const phase = movingPhase(field);
     const data = packedField(field, m, { phase });
-    const sunT = phase ? this.makePacked(field.arrays.sigma_t, data.sunT) : null;
+    const sunT = phase ? this.makePacked(field.arrays.sigma_t, data.sunT, texelChannels(field.suns.length)) : null;
     return { packed: this.makePacked(field.arrays.sigma_t, data.packed), sunT };
   }
 
-  /** The moving camera's RGBA16F (sigma_t, L_in) texture, with mipmaps where the device can. */
-  makePacked(arr, data) {
+  /** The moving camera's RGBA16F (sigma_t, L_in) texture, or its suns' transmittance (16F, a
+   * channel a sun, RGB padded: mipmaps need a format it can render to), with mipmaps where the
+   * device can. */
+  makePacked(arr, data, channels = 4) {
     const gl = this.gl;
     const [nz, ny, nx] = arr.shape;
     const t = gl.createTexture();
     gl.bindTexture(gl.TEXTURE_3D, t);
     gl.pixelStorei(gl.UNPACK_ALIGNMENT, 4);
-    gl.texImage3D(gl.TEXTURE_3D, 0, gl.RGBA16F, nx, ny, nz, 0, gl.RGBA, gl.FLOAT, data);
+    const [internal, format] = TAU_FORMATS[channels - 1];
+    gl.texImage3D(gl.TEXTURE_3D, 0, gl[internal], nx, ny, nz, 0, gl[format], gl.FLOAT, data);
     // Mipmaps (where the device can render to half floats): long steps read a prefiltered
     // field instead of skipping over thin features.
     let mips = false;

@@ -4,7 +4,7 @@
 
 export const BUDGET_MS = 16;
 export const MIN_SIZE = 128;
-const MAX_STEP_SCALE = 16; // (a forward-scattering field at 128 px needs 10-16 on a software GPU)
+const MAX_STEP_SCALE = 32; // (a forward-scattering field at 128 px takes 15-30 on a software GPU)
 
 /** Levels from the full size down: size shrinks to 256 px, then the step doubles, then size
  * shrinks to MIN_SIZE, then the step grows to MAX_STEP_SCALE. Each { size, stepScale, cost }. */

@@ -83,8 +83,8 @@ vec4 gB${k}[4];                  // its functions of direction at the ray's dire
       (k) => `  view += uDirect[${k}] * (dot(texture(uShape${k}_0, p) * uShapeScale${k}[0], gB${k}[0])
               + dot(texture(uShape${k}_1, p) * uShapeScale${k}[1], gB${k}[1])
               + dot(texture(uShape${k}_2, p) * uShapeScale${k}[2], gB${k}[2])
-              + dot(texture(uShape${k}_3, p) * uShapeScale${k}[3], gB${k}[3]))
-              + uDirect[${k}] * forwardLight(${k}, s.tau[${k}]);`,
+              + dot(texture(uShape${k}_3, p) * uShapeScale${k}[3], gB${k}[3]));
+  beam += beamLight(${k}, s.tau[${k}], exp(-s.tau[${k}]));`,
     )
     .join("\n");
   // with ms_light each sun's L_ms is a texture of its own, over its light factor
@@ -197,20 +197,18 @@ float phasePower(int n, float mu) {
 }
 
 const int MAX_FORWARD = ${MAX_FORWARD};
-float gForward[NS * MAX_FORWARD]; // per sun, the phase's powers 2 .. uBeamOrders + 1 at the ray's mu
+// per sun, the coefficients of tau^n in its beam's light, n = 1 .. MAX_FORWARD, at the ray's mu:
+// 4pi E albedo^n / n! p^(n+1) (p^m the phase convolved m times; 0 past uBeamOrders)
+vec3 gBeam[NS * MAX_FORWARD];
 
-// The sun's light of the first uBeamOrders orders still in its beam, scattered into the ray, per
-// unit irradiance (cloudgraph/phase.py forward_light): sum_n e^-tau (albedo tau)^n / n! p^(n+1).
-vec3 forwardLight(int k, float tau) {
-  vec3 term = vec3(1.0);
+// The sun's light of the first uBeamOrders orders still in its beam, scattered into the ray
+// (cloudgraph/phase.py forward_light times 4pi E): sum_n T (albedo tau)^n / n! p^(n+1), T =
+// e^-tau, in Horner's form: no exp and no branch a step (the moving march's step pays one log
+// for it).
+vec3 beamLight(int k, float tau, float T) {
   vec3 sum = vec3(0.0);
-  float T = exp(-tau);
-  for (int n = 1; n <= MAX_FORWARD; n++) {
-    if (n > uBeamOrders) break;
-    term *= uAlbedo * (tau / float(n));
-    sum += T * term * gForward[k * MAX_FORWARD + n - 1];
-  }
-  return sum;
+  for (int n = MAX_FORWARD; n >= 1; n--) sum = tau * (sum + gBeam[k * MAX_FORWARD + n - 1]);
+  return T * sum;
 }
 
 // The view terms' functions of direction at v, the ray's direction in a sun's frame (constant
@@ -273,7 +271,7 @@ Sample sampleAt(vec3 p) {
   vec4 sunT = textureLod(uSunT, p, uLod);
   for (int k = 0; k < SUNS; k++) {
     s.ms += gDirect[k] * sunT[k];
-    if (uBeamOrders > 0) s.ms += (4.0 * 3.14159265358979) * uDirect[k] * forwardLight(k, -log(max(sunT[k], 1e-7)));
+    if (uBeamOrders > 0) s.ms += beamLight(k, -log(max(sunT[k], 1e-7)), sunT[k]);
   }
 #endif
 #else
@@ -282,9 +280,9 @@ Sample sampleAt(vec3 p) {
 ${tauLines}
   s.ms = texture(uRad, p).rgb * uRadScale;
 ${sunMsLines}
-  vec3 view = vec3(0.0);
+  vec3 view = vec3(0.0), beam = vec3(0.0);
 ${viewLines}
-  s.ms = ${shapedSuns.length ? "max(s.ms + (4.0 * 3.14159265358979) * view, 0.0)" : "s.ms"};
+  s.ms = ${shapedSuns.length ? "max(s.ms + (4.0 * 3.14159265358979) * view + beam, 0.0)" : "s.ms"};
 #endif
   return s;
 }
@@ -309,8 +307,11 @@ void main() {
   for (int k = 0; k < SUNS; k++) direct[k] = uDirect[k] * phaseFactor(uToLight[k], d);
   gDirect = direct;
   for (int k = 0; k < SUNS; k++) {
+    vec3 c = (4.0 * 3.14159265358979) * uDirect[k];
     for (int n = 1; n <= MAX_FORWARD; n++) {
-      gForward[k * MAX_FORWARD + n - 1] = n <= uBeamOrders ? phasePower(n + 1, dot(uToLight[k], d)) : 0.0;
+      c *= uAlbedo / float(n);
+      gBeam[k * MAX_FORWARD + n - 1] = vec3(0.0);
+      if (n <= uBeamOrders) gBeam[k * MAX_FORWARD + n - 1] = c * phasePower(n + 1, dot(uToLight[k], d));
     }
   }
 ${basisLines}
