@@ -33,7 +33,7 @@ run: setup
 
 test: setup
 	$(VENV)/bin/ruff check cloudgraph cloudgraph_service server worker tests
-	$(VENV)/bin/python -m pytest -q
+	$(VENV)/bin/python -m pytest -q --durations=25
 
 lint: setup
 	$(VENV)/bin/ruff check cloudgraph cloudgraph_service server worker tests
