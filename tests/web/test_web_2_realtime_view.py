@@ -8,10 +8,17 @@ import time
 
 import pytest
 
-from .page import camera, errors_shown, frames_drawn, mean_abs, orbit, shot, shown_pixels, wait_rest
-
-#: Frames a second the real-time view must draw while orbiting (software WebGL, >= 128 px).
-MIN_ORBIT_FPS = 20
+from .page import (
+    assert_orbit_adapts,
+    camera,
+    errors_shown,
+    frames_drawn,
+    mean_abs,
+    orbit,
+    shot,
+    shown_pixels,
+    wait_rest,
+)
 
 
 def test_realtime_view_draws_the_field(page):
@@ -33,14 +40,14 @@ def test_realtime_view_draws_the_field(page):
 
 
 def test_realtime_orbit_holds_frame_rate(page):
-    """Orbiting draws at least MIN_ORBIT_FPS frames a second, never below 128 px inside, and
-    the full size again at rest."""
+    """Orbiting draws the moving camera's frames within the frame budget (page.py's
+    assert_orbit_adapts: its rate is measured, its levels asserted), never below 128 px inside,
+    and the full size again at rest."""
     before = shown_pixels(page)
     full = int(page.get_attribute("#viewport", "data-internal"))
     r = orbit(page, ms=3000, dx=150)
     frames = frames_drawn(page)
-    assert r["fps"] >= MIN_ORBIT_FPS, f"{r['fps']:.1f} frames/s while orbiting (sizes {r['sizes'][-10:]})"
-    assert r["sizes"] and min(r["sizes"]) >= 128, r["sizes"]
+    assert_orbit_adapts(page, "one sun", r)
     shot(page, "06-orbiting")
     wait_rest(page, frames - 1)
     assert int(page.get_attribute("#viewport", "data-internal")) == full
@@ -50,7 +57,6 @@ def test_realtime_orbit_holds_frame_rate(page):
     assert "yaw -" in page.inner_text("#camera-info")
     assert errors_shown(page) == []
     shot(page, "06-orbited")
-    print(f"orbit: {r['fps']:.1f} frames/s, internal {min(r['sizes'])}..{max(r['sizes'])} px")
 
 
 def test_zoom_pan_fly_and_keyframes(page):

@@ -14,7 +14,6 @@ from .page import (
     shot,
     wait_rest,
 )
-from .test_web_2_realtime_view import MIN_ORBIT_FPS
 from .test_web_3_compare_relight import MAX_FIELD_REL_MAE
 
 #: The isotropic cache's field key (the last step brings it back).
@@ -42,9 +41,10 @@ def test_a_forward_scattering_cloud_is_drawn_like_the_server_draws_it(page):
 
 
 def test_the_forward_scattering_view_holds_its_frame_rate_while_orbiting(page):
-    # every frame of an anisotropic field takes the exact march (six fetches a step): the frame
-    # budget lowers its resolution, never below 128 px
-    assert_orbit_holds(page, "g = 0.85", MIN_ORBIT_FPS)
+    # an anisotropic field's moving frames read two textures a step (the packed one and the suns'
+    # transmittance): the frame budget lowers their resolution and lengthens their step, never
+    # below 128 px
+    assert_orbit_holds(page, "g = 0.85")
 
 
 def test_the_isotropic_phase_brings_back_its_cache(page):
