@@ -69,13 +69,16 @@ def frames_drawn(page) -> int:
 
 
 def wait_rest(page, after_frames: int) -> None:
-    """Waits for the real-time view's full-size frame at rest, drawn after ``after_frames``."""
+    """Waits for the real-time view's full-size frame at rest, drawn after ``after_frames`` (the
+    exact march at 640 px in strips: 10-30 s of a software GPU sharing two cores with the service,
+    more while the machine is loaded; a wait, not a judged time)."""
     page.wait_for_function(
         f"""() => {{
           const v = document.querySelector('#viewport');
           return v.dataset.renderer === 'webgl' && v.dataset.state === 'rest'
             && Number(v.dataset.frames || 0) > {after_frames};
-        }}"""
+        }}""",
+        timeout=180_000,
     )
 
 
