@@ -7,14 +7,14 @@ import { SHAPE_TERMS } from "./field.js";
 import { linearToSrgb8, srgbToLinear } from "./imagemath.js";
 import { cross, normalize, sub } from "./camera.js";
 
-/** [internal format, format] of a 16F texture of 1-4 channels (the suns' tau textures). */
+/** [internal format, format] of a 16F texture of 1-4 channels (the suns' tau and transmittance
+ * textures). */
 const TAU_FORMATS = [
   ["R16F", "RED"],
   ["RG16F", "RG"],
   ["RGB16F", "RGB"],
   ["RGBA16F", "RGBA"],
 ];
-
 
 /** Why this browser cannot draw the real-time view, or "" when it can. */
 export function webgl2Missing(canvas) {
