@@ -49,6 +49,7 @@ from .field_ms import (
     light_factor,
     ms_light_power,
     smooth,
+    view_light_power,
     walk_ms,
     walk_smoothing,
 )
@@ -296,19 +297,25 @@ def bake_field(
     mask = ms_near.reshape(ms_shape[::-1])
     for c in walked:
         ms[c] = smooth(ms[c], mask, walk_smoothing(phase))
-    shapes = {c: _halve(ms[c][..., 3:], mask) for c in walked}  # (smooth: half the resolution)
+    views = {c: ms[c][..., 3:] for c in walked}
     ms = [np.ascontiguousarray(m[..., :3]) for m in ms]
     # each sun's L_ms over its light factor, as the readers read its tau (field_ms.MS_LIGHT_POWER):
-    # they multiply it back where they read L_ms
-    ms_light = None
+    # they multiply it back where they read L_ms; its view terms too, over the factor's grey
+    # power (field_ms.VIEW_LIGHT_POWER), before they are halved
+    ms_light, view_power = None, None
     if taus:
-        ms_light = {"power": ms_light_power(albedo).tolist(), "range": MS_LIGHT_RANGE}
+        power = ms_light_power(albedo)
+        ms_light = {"power": power.tolist(), "range": MS_LIGHT_RANGE}
+        view_power = view_light_power(albedo)
         pu = to_jit(mi.Point3f, unit_points(ms_shape).astype(np.float32))
         for c in range(len(ms)):
             if lights.kind(c) == "directional":  # (a sun's component c is directional light c)
                 tau = depth_at(depth_texture(taus[c], tau_power), pu, mi.Bool(True), tau_power)
                 tau = np.array(tau, np.float64).reshape(ms_shape[::-1])
-                ms[c] = (ms[c] / light_factor(tau, ms_light["power"], MS_LIGHT_RANGE)).astype(np.float32)
+                ms[c] = (ms[c] / light_factor(tau, power, MS_LIGHT_RANGE)).astype(np.float32)
+                if c in views:
+                    views[c] = views[c] / light_factor(tau, [view_power], MS_LIGHT_RANGE)
+    shapes = {c: _halve(v, mask) for c, v in views.items()}  # (smooth: half the resolution)
     progress("field", 1.0)
     t_ms += time.perf_counter() - t0
 
@@ -332,7 +339,7 @@ def bake_field(
         direction = -towards_light(lights.directions[0])
         meta["light"] = {"direction": direction.tolist(), "irradiance": lights.intensity[0].tolist()}
         if shapes:
-            meta["ms_shape"] = _shape_entry("ms_shape", lights, 0)
+            meta["ms_shape"] = _shape_entry("ms_shape", lights, 0, view_power)
             extra["ms_shape"] = shapes[0]
     else:  # v1.1: each component's arrays, at unit intensity (the scene's mix them)
         del meta["light"]
@@ -349,7 +356,7 @@ def bake_field(
                     lights.envmaps[c - lights.count + len(lights.envmaps)]
                 )
             if c in shapes:
-                entry["shape"] = _shape_entry(shape_name(c), lights, c)
+                entry["shape"] = _shape_entry(shape_name(c), lights, c, view_power)
                 extra[entry["shape"]["array"]] = shapes[c]
             if c > 0:
                 extra[entry["ms"]] = ms[c]
@@ -438,9 +445,11 @@ def background_map(path: str, width: int = BACKGROUND_WIDTH) -> np.ndarray:
     return np.stack([np.array(seen[i], np.float32) for i in range(3)], axis=-1).reshape(width // 2, width, 3)
 
 
-def _shape_entry(name: str, lights: Lights, c: int) -> dict:
-    """The header's entry of sun c's view terms: their array's name and frame (api.md)."""
-    return {"array": name, "frame": light_frame(towards_light(lights.directions[c])).tolist()}
+def _shape_entry(name: str, lights: Lights, c: int, light_power: float) -> dict:
+    """The header's entry of sun c's view terms: their array's name, frame and the grey power of
+    the light factor they are kept over (api.md)."""
+    frame = light_frame(towards_light(lights.directions[c])).tolist()
+    return {"array": name, "frame": frame, "light_power": light_power}
 
 
 def _halve(values: np.ndarray, mask: np.ndarray) -> np.ndarray:

@@ -128,6 +128,14 @@ def ms_light_power(albedo) -> np.ndarray:
     return MS_LIGHT_POWER[0] + MS_LIGHT_POWER[1] * np.sqrt(3.0 * (1.0 - a))
 
 
+def view_light_power(albedo) -> float:
+    """The grey P of the light factor that a sun's view terms are kept over (their one channel):
+    the mean of :func:`ms_light_power`'s. Like c_0 they fall below a lit surface as the light
+    does, and kept over the factor they interpolate between grid points at half the resolution
+    (field.py)."""
+    return float(ms_light_power(albedo).mean())
+
+
 def light_factor(tau: np.ndarray, power, limit: float) -> np.ndarray:
     """(..., 3) f = exp(-min(P tau, limit)) per channel at optical depths ``tau`` (...)."""
     return np.exp(-np.minimum(np.asarray(tau, float)[..., None] * np.asarray(power, float), limit))

@@ -100,8 +100,9 @@ class FieldTextures:
             v1.1 field: the march multiplies the sun's irradiance in), else at its own; ms: the
             other components' (sky, maps) mixed (:meth:`mixed_ms`; None without); shape: per
             directional light, how its L_ms depends on the view (an anisotropic phase; None
-            without: phase.shape_basis), frame: the basis's frame (3, 3); all trilinear,
-            clamped, over the unit cube.
+            without: phase.shape_basis), over the light factor of grey power ``shape_power``
+            (its entry's ``light_power``; 0 in a file of before it), frame: the basis's frame
+            (3, 3); all trilinear, clamped, over the unit cube.
         step: march step, world units; max_dtau: a step's optical depth at most (at its block's
             majorant); edge: within this of where the light enters the box, single scattering
             integrates sigma_t to it (world units; field.py's header, read by the page too).
@@ -115,6 +116,7 @@ class FieldTextures:
     ms_light: tuple
     ms: object
     shape: tuple
+    shape_power: tuple
     frame: tuple
     step: float
     max_dtau: float
@@ -156,6 +158,7 @@ class FieldTextures:
             ms_light=(tuple(map(float, ml["power"])), float(ml["range"])),
             ms=None if rest is None else linear_texture(rest),
             shape=tuple(arrays),
+            shape_power=tuple(float(sh.get("light_power", 0.0)) if sh else 0.0 for sh in shapes),
             frame=tuple(np.asarray(sh["frame"], float) if sh else None for sh in shapes),
             step=step,
             max_dtau=max_dtau,
@@ -371,7 +374,10 @@ class GraphIntegrator(mi.SamplingIntegrator):
         for k, (tex, view) in enumerate(zip(f.shape, views, strict=True)):  # the suns, unrolled
             if view is not None:
                 c = tex.eval(pu, active)
-                L_ms += view[0] * sum((c[i] * P for i, P in enumerate(view[1])), mi.Float(0.0))
+                terms = sum((c[i] * P for i, P in enumerate(view[1])), mi.Float(0.0))
+                if f.shape_power[k]:  # (kept over the sun's light factor, of grey power)
+                    terms *= dr.exp(-dr.minimum(f.shape_power[k] * taus[k], limit))
+                L_ms += view[0] * terms
                 if view[2]:  # the sun's light still in its beam, in closed form (field_ms.py)
                     L_ms += view[0] * forward_light(mi.Color3f(*self.albedo), taus[k], view[2])
         if any(view is not None for view in views):  # (the series can ring below 0)

@@ -118,10 +118,11 @@ def encode(field: dict, compress: bool = False) -> bytes:
     return gzip.compress(bytes(body)) if compress else bytes(body)
 
 
-def add_view_terms(field: dict, seed: int = 3, sun: int = 0) -> None:
+def add_view_terms(field: dict, seed: int = 3, sun: int = 0, light_power: float = 0.0) -> None:
     """Gives ``field`` an anisotropic phase's view terms (api.md, ``ms_shape``): 14 smooth
     channels on the radiance grid, of the size of radiance_ms, in a frame about the light (of a
-    v1.1 field: about its directional light ``sun``)."""
+    v1.1 field: about its directional light ``sun``); with ``light_power`` kept over the sun's
+    light factor of that grey power (the header's ``ms_light`` range)."""
     rng = np.random.default_rng(seed)
     rad = field["values"]["radiance_ms"]
     mz, my, mx = rad.shape[:3]
@@ -144,6 +145,8 @@ def add_view_terms(field: dict, seed: int = 3, sun: int = 0) -> None:
     name = "ms_shape" if sun == 0 else f"ms_shape_{sun}"
     put_array(field, name, terms, np.abs(terms).reshape(-1, 14).max(axis=0) / 1000.0)
     entry = {"array": name, "frame": frame.tolist()}
+    if light_power:
+        entry["light_power"] = light_power
     if "lights" in field["header"]:
         suns[sun]["shape"] = entry
     else:
@@ -370,6 +373,10 @@ def reference_render(
             for sun, basis, e in zip(suns, bases, direct, strict=True):
                 if basis is not None:
                     view = (_sample(v[sun["shape"]["array"]], p) * basis[idx]).sum(axis=1)
+                    if sun["shape"].get("light_power"):  # over the sun's grey light factor
+                        tau = _tau_light(h, v, p, sun)
+                        power, limit = sun["shape"]["light_power"], h["ms_light"]["range"]
+                        view = view * np.exp(-np.minimum(power * tau, limit))
                     rad = rad + 4 * math.pi * e * view[:, None]
                     if h.get("ms_forward"):  # the sun's light still in its beam, in closed form
                         to_light = -np.asarray(sun["direction"], float)

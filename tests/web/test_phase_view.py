@@ -48,15 +48,20 @@ def test_the_page_weights_single_scattering_by_the_phase_per_pixel(page, phase, 
         assert rel_mae(plain, ref) > 0.1, "the phase changed little: a useless test"
 
 
-def test_the_page_adds_the_view_terms_of_an_anisotropic_field(page):  # noqa: F811
+@pytest.mark.parametrize("light_power", [0.0, 0.9])
+def test_the_page_adds_the_view_terms_of_an_anisotropic_field(page, light_power):  # noqa: F811
     # The field of an anisotropic phase keeps how the sun's L_ms depends on the view (14
     # functions of direction, api.md): the page's march adds them per sample and clamps at 0,
-    # as the server's does, against the numpy march that reads them independently.
+    # as the server's does, against the numpy march that reads them independently; with a
+    # light_power (the engine's bake) they are kept over the sun's light factor of that power.
     field, plain = make_field(), make_field()
     for f in (field, plain):
         f["header"]["phase"] = {"type": "hg", "g": 0.85}
         f["header"]["light"]["irradiance"] = [0.2, 0.18, 0.16]  # L_ms the most of the image
-    add_view_terms(field)
+    if light_power:
+        field["header"]["ms_light"] = {"power": [0.0, 0.0, 0.0], "range": 1.25}
+        plain["header"]["ms_light"] = field["header"]["ms_light"]
+    add_view_terms(field, light_power=light_power)
     lo, hi = (np.asarray(v) for v in field["header"]["world_bbox"])
     c, r = (lo + hi) / 2, float(np.linalg.norm(hi - lo))
     cams = [
@@ -68,7 +73,12 @@ def test_the_page_adds_the_view_terms_of_an_anisotropic_field(page):  # noqa: F8
         ref = reference_render(field, cam, lobes=[(1.0, 0.85)])
         assert ref.mean() > 5, "the reference image is black: a useless test"
         assert rel_mae(img, ref) < 0.025
-        assert rel_mae(without, ref) > 0.1, "the view terms changed little: a useless test"
+        # (over the light factor they weigh less: 4.4 % with light_power 0.9)
+        assert rel_mae(without, ref) > (0.03 if light_power else 0.1), "the view terms changed little"
+        if light_power:  # the factor read as none would fail the first assertion
+            del field["header"]["ms_shape"]["light_power"]
+            assert rel_mae(reference_render(field, cam, lobes=[(1.0, 0.85)]), ref) > 0.05
+            field["header"]["ms_shape"]["light_power"] = light_power
 
 
 @pytest.mark.parametrize(

@@ -35,6 +35,14 @@ function vec(v, n, what) {
   return v.map(Number);
 }
 
+/** A sun's ms_shape entry (api.md): its array, frame and the grey power of the light factor
+ * its terms are kept over (absent: 0, the terms themselves). */
+function shapeEntry(shape) {
+  const lightPower = Number(shape.light_power ?? 0);
+  if (!(lightPower >= 0)) throw new FieldError("the field's ms_shape has no valid light_power (>= 0)");
+  return { array: shape.array, frame: vec((shape.frame || []).flat(), 9, "ms_shape frame"), lightPower };
+}
+
 /**
  * Decodes a field body (an ArrayBuffer, already gunzipped by fetch).
  *
@@ -146,11 +154,12 @@ export function decodeField(buffer) {
     // v1 one its light at its irradiance
     unit: !!header.lights,
     // the directional lights: { direction (the way light travels), tau: its tau array's name,
-    // shape: null or { array, frame: 9 numbers, rows e_x, e_y, e_z (e_z toward the light) } }
+    // shape: null or { array, frame: 9 numbers, rows e_x, e_y, e_z (e_z toward the light),
+    // lightPower: the grey P of the light factor its terms are kept over (0: none) } }
     suns: lights.suns.map((s) => ({
       direction: vec(s.direction, 3, "light.direction"),
       tau: s.tau,
-      shape: s.shape ? { array: s.shape.array, frame: vec((s.shape.frame || []).flat(), 9, "ms_shape frame") } : null,
+      shape: s.shape ? shapeEntry(s.shape) : null,
     })),
     // every light component in the header's order: { type, ms: its radiance array's name,
     // background: an environment map's lat-long background array's name, else null }

@@ -346,13 +346,15 @@ export class GLView {
       radianceKey: field.header.radiance_key,
       phase: phaseLobes(field.header.phase),
       forward: field.forward,
-      // per shaped sun: its view terms' scales, four a texture (zero past the last), and frame
+      // per shaped sun: its view terms' scales, four a texture (zero past the last), frame and
+      // the grey power of the light factor they are kept over
       shapes: shaped.map((k) => {
         const shape = field.arrays[field.suns[k].shape.array];
         return {
           sun: k,
           scale: groups.flatMap((from) => [0, 1, 2, 3].map((c) => (from + c < SHAPE_TERMS ? shape.scale[from + c] : 0))),
           frame: field.suns[k].shape.frame,
+          lightPower: field.suns[k].shape.lightPower,
         };
       }),
       toLight,
@@ -439,9 +441,10 @@ export class GLView {
     set("uniform3fv", "uPhase", f.phase || [0, 0, 1]);
     set("uniform1i", "uBeamOrders", f.phase ? f.forward : 0);
     if (!fast) {
-      for (const { sun, scale, frame } of f.shapes) {
+      for (const { sun, scale, frame, lightPower } of f.shapes) {
         set("uniform4fv", `uShapeScale${sun}[0]`, scale);
         set("uniformMatrix3fv", `uShapeFrame${sun}`, true, frame);
+        set("uniform1f", `uShapePower${sun}`, lightPower);
       }
     }
     set("uniform3fv", "uAlbedo", f.albedo);

@@ -72,6 +72,7 @@ uniform sampler3D uShape${k}_2;  // 8-11
 uniform sampler3D uShape${k}_3;  // 12-13 (BA unused)
 uniform vec4 uShapeScale${k}[4]; // the channels' scales
 uniform mat3 uShapeFrame${k};    // rows e_x, e_y, e_z of its frame (e_z toward the sun)
+uniform float uShapePower${k};   // its terms are over exp(-min(P tau_light, uMsRange)), P this
 vec4 gB${k}[4];                  // its functions of direction at the ray's direction`,
     )
     .join("\n");
@@ -80,7 +81,7 @@ vec4 gB${k}[4];                  // its functions of direction at the ray's dire
     .join("\n");
   const viewLines = shapedSuns
     .map(
-      (k) => `  view += uDirect[${k}] * (dot(texture(uShape${k}_0, p) * uShapeScale${k}[0], gB${k}[0])
+      (k) => `  view += uDirect[${k}] * exp(-min(uShapePower${k} * s.tau[${k}], uMsRange)) * (dot(texture(uShape${k}_0, p) * uShapeScale${k}[0], gB${k}[0])
               + dot(texture(uShape${k}_1, p) * uShapeScale${k}[1], gB${k}[1])
               + dot(texture(uShape${k}_2, p) * uShapeScale${k}[2], gB${k}[2])
               + dot(texture(uShape${k}_3, p) * uShapeScale${k}[3], gB${k}[3]));
