@@ -22,7 +22,7 @@ environment map's component also its ``background``: the array ``background_K``,
 the map's radiance seen along the directions of field.latlong_directions, at scale 1.
 A field of an anisotropic phase also holds, per directional light, ``ms_shape`` (header
 ``ms_shape``, or the component's ``shape``: its array ``ms_shape_K``, its frame and
-``light_power``): (mz', my', mx', 14) coefficients c_i of the functions of direction of
+``light_power``): (mz', my', mx', 20) coefficients c_i of the functions of direction of
 phase.shape_basis at unit intensity, at half radiance_ms's resolution, over the light's factor
 f = exp(-min(light_power tau_light, ms_light's range)); radiance_ms + E f sum_i c_i B_i(d),
 clamped at 0, is L_ms seen along a ray of direction d (field_ms.py, ``walk_ms``; api.md).

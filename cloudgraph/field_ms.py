@@ -11,7 +11,7 @@ direct light where the flight is, from tau_light: field.py) stands in for the re
 the flight integrated over :data:`MS_DIRECTIONS` directions in closed form, not sampled
 (:func:`gather_ms`). An anisotropic phase (docs/method.md, "Anisotropic scattering") takes a
 sun's L_ms by the walks of ``gather`` (its first events exact) from the points instead, and keeps
-how it depends on the view as coefficients of 14 functions of direction (:func:`walk_ms`).
+how it depends on the view as coefficients of 20 functions of direction (:func:`walk_ms`).
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ from scipy.ndimage import gaussian_filter
 from .phase import (
     SHAPE_DEGREES,
     SHAPE_NORMS,
+    SHAPE_WEIGHTS,
     beam_phases,
     forward_light,
     hg_phase,
@@ -270,12 +271,12 @@ def walk_ms(medium, G_tex, points: np.ndarray, inputs: dict, seed: int) -> np.nd
     phase.phase_legendre):
 
         L_ms(x, d) = int p(w . d) L(x, w) dw  ~  c_0(x) + sum_i c_i(x) B_i(d),
-        c_i = g_l(i) int B_i(w) L(x, w) dw / int B_i^2,
+        c_i = W_i g_l(i) int B_i(w) L(x, w) dw / int B_i^2,
 
-    with L(x, w) the radiance that a walk from x along w brings back (phase.phase_walk: the
-    medium's next events exact, the graph's ``G`` after them; x's own event is the camera's),
-    less the sun's light still in its beam where ``inputs["forward"]`` orders of it are the
-    camera march's, in closed form (FORWARD_ORDERS).
+    W_i the term's weight (phase.SHAPE_WEIGHTS), with L(x, w) the radiance that a walk from x
+    along w brings back (phase.phase_walk: the medium's next events exact, the graph's ``G``
+    after them; x's own event is the camera's), less the sun's light still in its beam where
+    ``inputs["forward"]`` orders of it are the camera march's, in closed form (FORWARD_ORDERS).
     WALKS walks a point, their first directions half uniform and half from the phase about the
     light (one-sample mixture pdf). Returns c_0 (RGB) and the c_i at unit intensity (the
     channels' mean over the irradiance's), so that the scene's mix scales them."""
@@ -325,4 +326,5 @@ def walk_ms(medium, G_tex, points: np.ndarray, inputs: dict, seed: int) -> np.nd
     S = np.stack([np.array(v, np.float64) for v in sums], axis=1) / k  # (M, 3 + len(B))
     degrees = np.array((0, 0, 0, *SHAPE_DEGREES))
     scale = phase_legendre(lobes, max(degrees))[degrees] / np.array((4 * np.pi,) * 3 + SHAPE_NORMS)
+    scale *= np.array((1.0,) * 3 + SHAPE_WEIGHTS)  # (the series' terms each at its weight)
     return (S * scale[None, :]).astype(np.float32)

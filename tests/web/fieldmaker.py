@@ -119,7 +119,7 @@ def encode(field: dict, compress: bool = False) -> bytes:
 
 
 def add_view_terms(field: dict, seed: int = 3, sun: int = 0, light_power: float = 0.0) -> None:
-    """Gives ``field`` an anisotropic phase's view terms (api.md, ``ms_shape``): 14 smooth
+    """Gives ``field`` an anisotropic phase's view terms (api.md, ``ms_shape``): 20 smooth
     channels on the radiance grid, of the size of radiance_ms, in a frame about the light (of a
     v1.1 field: about its directional light ``sun``); with ``light_power`` kept over the sun's
     light factor of that grey power (the header's ``ms_light`` range)."""
@@ -128,12 +128,11 @@ def add_view_terms(field: dict, seed: int = 3, sun: int = 0, light_power: float 
     mz, my, mx = rad.shape[:3]
     zz, yy, xx = np.meshgrid(*[(np.arange(n) + 0.5) / n for n in (mz, my, mx)], indexing="ij")
     lum = rad.mean(axis=-1)
+    a, b = rng.uniform(-0.5, 0.5, 14), rng.uniform(0, 1, 14)
+    # degree 3's six, whose functions reach 15-30 (view_basis), smaller
+    a, b = np.append(a, rng.uniform(-0.5, 0.5, 6) / 30), np.append(b, rng.uniform(0, 1, 6))
     terms = np.stack(
-        [
-            lum * a * (0.6 + 0.8 * (b * xx + (1 - b) * zz))
-            for a, b in zip(rng.uniform(-0.5, 0.5, 14), rng.uniform(0, 1, 14), strict=True)
-        ],
-        axis=-1,
+        [lum * ai * (0.6 + 0.8 * (bi * xx + (1 - bi) * zz)) for ai, bi in zip(a, b, strict=True)], -1
     )
     terms[..., 1] = 1.5 * lum  # P_1: the forward peak, toward the light
     suns = _suns(field["header"])
@@ -143,7 +142,7 @@ def add_view_terms(field: dict, seed: int = 3, sun: int = 0, light_power: float 
     ex /= np.linalg.norm(ex)
     frame = np.stack([ex, np.cross(ez, ex), ez])
     name = "ms_shape" if sun == 0 else f"ms_shape_{sun}"
-    put_array(field, name, terms, np.abs(terms).reshape(-1, 14).max(axis=0) / 1000.0)
+    put_array(field, name, terms, np.abs(terms).reshape(-1, 20).max(axis=0) / 1000.0)
     entry = {"array": name, "frame": frame.tolist()}
     if light_power:
         entry["light_power"] = light_power
@@ -244,12 +243,24 @@ def add_lights(field: dict, directions, sky: bool = False, seed: int = 5, envmap
 
 
 def view_basis(d: np.ndarray, frame: np.ndarray) -> np.ndarray:
-    """(N, 14) the view terms' functions of direction at unit directions d (N, 3), written out
+    """(N, 20) the view terms' functions of direction at unit directions d (N, 3), written out
     as api.md gives them: in the frame's coordinates (x, y, z), y, z, x, 6xy, 3yz, P_2(z), 3xz,
-    3(x^2 - y^2), then P_3(z) .. P_8(z)."""
+    3(x^2 - y^2), then P_3(z) .. P_8(z), then 15(3x^2 y - y^3), 30xyz, 1.5(5z^2 - 1) y,
+    1.5(5z^2 - 1) x, 15z(x^2 - y^2), 15(x^3 - 3xy^2)."""
     x, y, z = (d @ np.asarray(frame, float).T).T
     P = [np.polynomial.legendre.Legendre.basis(n)(z) for n in range(9)]
-    return np.stack([y, z, x, 6 * x * y, 3 * y * z, P[2], 3 * x * z, 3 * (x * x - y * y), *P[3:]], axis=1)
+    q = 1.5 * (5 * z * z - 1)
+    degree3 = [
+        15 * (3 * x * x * y - y**3),
+        30 * x * y * z,
+        q * y,
+        q * x,
+        15 * z * (x * x - y * y),
+        15 * (x**3 - 3 * x * y * y),
+    ]
+    return np.stack(
+        [y, z, x, 6 * x * y, 3 * y * z, P[2], 3 * x * z, 3 * (x * x - y * y), *P[3:], *degree3], axis=1
+    )
 
 
 def _sample(grid: np.ndarray, unit: np.ndarray) -> np.ndarray:

@@ -155,7 +155,7 @@ def test_intensities_and_limits_in_words(page):  # noqa: F811
           suns: Array.from({ length: n }, (_, k) => ({ tau: `t${k}`, shape: { array: 's' } })),
           components: [], arrays: { sigma_t: grid, tau_light: grid,
           radiance_ms: { shape: [2, 2, 2, 3] }, majorant: { shape: [1, 1, 1] },
-          s: { shape: [2, 2, 2, 14] } } });
+          s: { shape: [2, 2, 2, 20] } } });
         const field = { unit: true, suns: [{}, {}], components: [{ type: 'directional' }, { type: 'sky' },
           { type: 'directional' }] };
         return { units: view.gl.getParameter(view.gl.MAX_TEXTURE_IMAGE_UNITS),
@@ -166,7 +166,7 @@ def test_intensities_and_limits_in_words(page):  # noqa: F811
       }"""
     )
     assert r["one"] == ""
-    assert f"need 37 texture units and this device has {r['units']}" in r["eight"] and "server" in r["eight"]
+    assert f"need 45 texture units and this device has {r['units']}" in r["eight"] and "server" in r["eight"]
     # the second sun is past the mix's list: off; the sky's radiance is the one behind the cloud
     assert r["mixed"] == {
         "suns": [[1, 2, 3], [0, 0, 0]],

@@ -3,7 +3,7 @@
 
 import { fragmentShader, textureUnits, VERTEX } from "./shaders.js";
 import { channelGroup, depthTexels, halfFloats, interleaved, mixedBackground, mixedRadiance, MOVING_PHASE_SUNS, packedField, texelChannels } from "./fieldtex.js";
-import { SHAPE_TERMS } from "./field.js";
+import { SHAPE_TERMS, SHAPE_TEXTURES } from "./field.js";
 import { linearToSrgb8, srgbToLinear } from "./imagemath.js";
 import { cross, normalize, sub } from "./camera.js";
 
@@ -157,7 +157,7 @@ export class GLView {
    * GPU bytes of a field's textures: R16F density, 16F textures of the suns' tau (a channel
    * each, at the tau grid's resolution), RGBA16F-padded radiance (with ms_light each sun's apart too), R16F majorant, the RGBA16F (sigma_t, L_in) texture of the
    * moving camera with its mipmaps (and of an anisotropic field its suns' transmittance, 16F a
-   * channel each, RGB padded), four RGBA16F textures of view terms a shaped sun, and an
+   * channel each, RGB padded), SHAPE_TEXTURES RGBA16F textures of view terms a shaped sun, and an
    * RGBA16F-padded lat-long background of the environment maps.
    */
   static textureBytes(field) {
@@ -166,7 +166,7 @@ export class GLView {
     const moving = ((8 + (movingPhase(field) ? 2 * texelChannels(field.suns.length) : 0)) * 8) / 7; // with mips
     const density = 2 + moving;
     const taus = [0, 4].reduce((b, from) => b + 2 * texelChannels(field.suns.length - from) * count(field.arrays.tau_light), 0);
-    const shape = shapedSuns(field).reduce((n, k) => n + 8 * Math.ceil(SHAPE_TERMS / 4) * count(field.arrays[field.suns[k].shape.array]), 0);
+    const shape = shapedSuns(field).reduce((n, k) => n + 8 * SHAPE_TEXTURES * count(field.arrays[field.suns[k].shape.array]), 0);
     const env = field.components.find((c) => c.background);
     const background = env ? 8 * field.arrays[env.background].shape[0] * field.arrays[env.background].shape[1] : 0;
     // the others' L_ms (with ms_light: none where every light is a sun), each sun's apart
@@ -285,7 +285,7 @@ export class GLView {
       return make(group[0], gl[internal], gl[format], data, gl.LINEAR, gl.FLOAT);
     };
     const shaped = shapedSuns(field);
-    const groups = Array.from({ length: Math.ceil(SHAPE_TERMS / 4) }, (_, g) => 4 * g);
+    const groups = Array.from({ length: SHAPE_TEXTURES }, (_, g) => 4 * g);
     const layout = { suns: field.suns.length, shaped, env: !!m.env, sunMs: !!field.msLight };
     const phase = movingPhase(field);
     const programs = {
@@ -346,13 +346,13 @@ export class GLView {
       radianceKey: field.header.radiance_key,
       phase: phaseLobes(field.header.phase),
       forward: field.forward,
-      // per shaped sun: its view terms' scales, four a texture (zero past the last), frame and
+      // per shaped sun: its view terms' scales, four a texture, frame and
       // the grey power of the light factor they are kept over
       shapes: shaped.map((k) => {
         const shape = field.arrays[field.suns[k].shape.array];
         return {
           sun: k,
-          scale: groups.flatMap((from) => [0, 1, 2, 3].map((c) => (from + c < SHAPE_TERMS ? shape.scale[from + c] : 0))),
+          scale: groups.flatMap((from) => [0, 1, 2, 3].map((c) => (from + c < SHAPE_TERMS ? shape.scale[from + c] : 0))), // (zero past the last)
           frame: field.suns[k].shape.frame,
           lightPower: field.suns[k].shape.lightPower,
         };
@@ -467,7 +467,7 @@ export class GLView {
       ["uTauA", t.tauA],
       ["uSunT", t.sunT],
       ["uTauB", t.tauB],
-      ...(fast ? [] : f.shapes.flatMap(({ sun }) => [0, 1, 2, 3].map((g) => [`uShape${sun}_${g}`, t[`shape${sun}_${g}`]]))),
+      ...(fast ? [] : f.shapes.flatMap(({ sun }) => Array.from({ length: SHAPE_TEXTURES }, (_, g) => [`uShape${sun}_${g}`, t[`shape${sun}_${g}`]]))),
     ];
     let unit = 0;
     for (const [name, tex] of [...units, ["uEnv", t.env]]) {
