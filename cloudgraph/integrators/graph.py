@@ -87,6 +87,15 @@ FIELD_TR_MIN = 1e-3
 FIELD_EDGE_SAMPLES = 3
 
 
+#: Steps of the field's march per read of a sun's view terms (an anisotropic phase's field: a
+#: 20-channel texture at a quarter of the field grid's resolution, 8 steps a texel), their sum
+#: linear along the ray in between. The bench's dense cloud at g = 0.85 (warm 256^2 frame, 1
+#: spp, side-lit): 1 step 43.9 ms, 2 steps 39.1, 4 steps 40.7 (each read saved costs the steps
+#: between a field read of their own, in empty blocks too), the isotropic frame 22.4; the 12
+#: bench rows' field against gather the same within 0.03 points.
+VIEW_STEPS = 2
+
+
 @dataclass
 class FieldTextures:
     """A :class:`~cloudgraph.field.RadianceField` in Dr.Jit for the ``field`` estimator.
@@ -353,10 +362,12 @@ class GraphIntegrator(mi.SamplingIntegrator):
             active &= (t < t_end) & (Tr > 1e-4)
         return L + Tr * self._background(mi.Bool(True), d)
 
-    def _field_at(self, p, active, views):
-        """(sigma_t, [tau_light per directional light], L_ms) at world points p (field.py);
-        ``views``: per directional light, E and the basis functions at the ray's direction
-        (:meth:`_views`) where the field keeps how its L_ms depends on the view, else None."""
+    def _field_at(self, p, active, views, sums=None):
+        """(sigma_t, [tau_light per directional light], L_ms, sums) at world points p
+        (field.py); ``views``: per directional light, E and the basis functions at the ray's
+        direction (:meth:`_views`) where the field keeps how its L_ms depends on the view, else
+        None; ``sums``: per such light sum_i c_i B_i(d) read from its view terms' texture here
+        (returned), or given (the march's midpoints: :meth:`_field`)."""
         f = self.field
         pu = self.medium.world_to_unit @ mi.Point3f(p)
         taus = [self._tau_light(k, pu, active) for k in range(len(self.to_light))]
@@ -371,19 +382,28 @@ class GraphIntegrator(mi.SamplingIntegrator):
             if any(power):
                 sun *= dr.exp(-dr.minimum(mi.Color3f(*power) * taus[k], limit))
             L_ms += sun
-        for k, (tex, view) in enumerate(zip(f.shape, views, strict=True)):  # the suns, unrolled
+        if sums is None:
+            sums = [
+                None if v is None else self._view_sum(tex, v, pu, active)
+                for tex, v in zip(f.shape, views, strict=True)
+            ]
+        for k, (terms, view) in enumerate(zip(sums, views, strict=True)):  # the suns, unrolled
             if view is not None:
-                c = tex.eval(pu, active)
-                terms = sum((c[i] * P for i, P in enumerate(view[1])), mi.Float(0.0))
                 if f.shape_power[k]:  # (kept over the sun's light factor, of grey power)
-                    terms *= dr.exp(-dr.minimum(f.shape_power[k] * taus[k], limit))
+                    terms = terms * dr.exp(-dr.minimum(f.shape_power[k] * taus[k], limit))
                 L_ms += view[0] * terms
                 if view[2]:  # the sun's light still in its beam, in closed form (field_ms.py)
                     L_ms += view[0] * forward_light(mi.Color3f(*self.albedo), taus[k], view[2])
         if any(view is not None for view in views):  # (the series can ring below 0)
             L_ms = dr.maximum(L_ms, 0.0)
         sigma_t = self.medium.texture.eval(pu, active)[0] * self.medium.scale
-        return sigma_t, taus, L_ms
+        return sigma_t, taus, L_ms, sums
+
+    @staticmethod
+    def _view_sum(tex, view, pu, active):
+        """sum_i c_i(pu) B_i(d) of one sun's view terms (before its light factor)."""
+        c = tex.eval(pu, active)
+        return sum((c[i] * P for i, P in enumerate(view[1])), mi.Float(0.0))
 
     def _views(self, d):
         """Per directional light: (E, the shape's basis functions at d, the phase's powers of
@@ -428,8 +448,9 @@ class GraphIntegrator(mi.SamplingIntegrator):
         # Single scattering with tau_light linear in optical depth between the segment's ends
         # (single_segment: exact in a homogeneous medium, where exp(-tau_light) changes many
         # times over in one step of a dense cloud), L_ms linear (tracing.exponential_segment).
-        # Each step evaluates one new end point; one jitter per ray shifts the step grid against
-        # banding.
+        # Each step evaluates one new end point (a field with view terms: two steps an iteration,
+        # the view terms read at their ends only); one jitter per ray shifts the step grid
+        # against banding.
         f = self.field
         t, t_end = self.medium.box_interval(o, d)
         albedo = mi.Color3f(*self.albedo)
@@ -441,7 +462,10 @@ class GraphIntegrator(mi.SamplingIntegrator):
         active = active & (t < t_end)
         t = dr.select(active, t, 0.0)  # rays that miss may have no finite entry point
         views = self._views(d)
-        sigma0, taus0, ms0 = self._field_at(o + t * d, active, views)  # values at the segment's start
+        # a field whose L_ms depends on the view reads its view terms' texture every VIEW_STEPS
+        # steps, and takes their sum in between as linear along the ray (a Python-level switch)
+        n = VIEW_STEPS if any(view is not None for view in views) else 1
+        sigma0, taus0, ms0, sums0 = self._field_at(o + t * d, active, views)  # at the segment's start
         steps = mi.UInt32(0)  # Iteration cap: a ray takes each step and skips each block once
         started = mi.Bool(False)  # Whether the ray has reached a block with medium (and jittered)
         while dr.hint(active, label="field_march"):
@@ -449,21 +473,34 @@ class GraphIntegrator(mi.SamplingIntegrator):
             sigma_maj, t_leave = self.medium.block(o, d, t, active)
             empty = sigma_maj <= 0.0
             # the jitter applies where the medium begins; in optically thick blocks steps of at
-            # most max_dtau at the block's majorant
+            # most max_dtau at the block's majorant (n steps: as far as the block goes)
             step = dr.minimum(f.step, f.max_dtau / dr.maximum(sigma_maj, 1e-12))
             jittered = dr.select(started, step, first * step / f.step)
+            if n > 1:
+                jittered = dr.minimum(n * jittered, dr.maximum(t_leave - t, jittered))
             dt = step_length(empty, t, t_leave, t_end, jittered, 1e-3 * f.step)
-            sigma1, taus1, ms1 = self._field_at(o + (t + dt) * d, active, views)
-            # One segment (nothing to add across an empty block)
-            dtau = dr.select(empty, 0.0, 0.5 * (sigma0 + sigma1) * dt)
-            seg_Tr, seg_ms = exponential_segment(dtau, ms0, ms1)
-            seg_ss = mi.Color3f(0.0)
-            for k in range(len(E)):  # the directional lights, unrolled
-                seg_ss += E[k] * single_segment(dtau, taus0[k], taus1[k])
-            L += Tr * albedo * (seg_ss + seg_ms)
-            Tr *= seg_Tr
+            sigma1, taus1, ms1, sums1 = self._field_at(o + (t + dt) * d, active, views)
+            ends = []
+            for j in range(1, n):  # the steps between, their view terms' sums interpolated
+                w = j / n
+                between = [
+                    None if sums1[k] is None else (1 - w) * sums0[k] + w * sums1[k] for k in range(len(sums1))
+                ]
+                ends.append(self._field_at(o + (t + w * dt) * d, active, views, between)[:3])
+            ends.append((sigma1, taus1, ms1))
+            for end in ends:  # the n segments (unrolled)
+                sigma_b, taus_b, ms_b = end
+                # (nothing to add across an empty block)
+                dtau = dr.select(empty, 0.0, 0.5 * (sigma0 + sigma_b) * (dt / n))
+                seg_Tr, seg_ms = exponential_segment(dtau, ms0, ms_b)
+                seg_ss = mi.Color3f(0.0)
+                for k in range(len(E)):  # the directional lights, unrolled
+                    seg_ss += E[k] * single_segment(dtau, taus0[k], taus_b[k])
+                L += Tr * albedo * (seg_ss + seg_ms)
+                Tr *= seg_Tr
+                sigma0, taus0, ms0 = sigma_b, taus_b, ms_b
             t += dt
-            sigma0, taus0, ms0 = sigma1, taus1, ms1
+            sums0 = sums1
             steps += 1
             started |= ~empty
             active &= (t < t_end) & (Tr > FIELD_TR_MIN) & (steps < f.max_steps)
