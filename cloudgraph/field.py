@@ -301,7 +301,7 @@ def bake_field(
     ms = [np.ascontiguousarray(m[..., :3]) for m in ms]
     # each sun's L_ms over its light factor, as the readers read its tau (field_ms.MS_LIGHT_POWER):
     # they multiply it back where they read L_ms; its view terms too, over the factor's grey
-    # power (field_ms.VIEW_LIGHT_POWER), before they are halved
+    # power (field_ms.view_light_power), before they are halved
     ms_light, view_power = None, None
     if taus:
         power = ms_light_power(albedo)

@@ -448,9 +448,9 @@ class GraphIntegrator(mi.SamplingIntegrator):
         # Single scattering with tau_light linear in optical depth between the segment's ends
         # (single_segment: exact in a homogeneous medium, where exp(-tau_light) changes many
         # times over in one step of a dense cloud), L_ms linear (tracing.exponential_segment).
-        # Each step evaluates one new end point (a field with view terms: two steps an iteration,
-        # the view terms read at their ends only); one jitter per ray shifts the step grid
-        # against banding.
+        # Each step evaluates one new end point (a field with view terms: VIEW_STEPS steps an
+        # iteration, the view terms read at their ends only); one jitter per ray shifts the step
+        # grid against banding.
         f = self.field
         t, t_end = self.medium.box_interval(o, d)
         albedo = mi.Color3f(*self.albedo)

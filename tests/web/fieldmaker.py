@@ -376,29 +376,27 @@ def reference_render(
         p = o_u + t[:, None] * d_u[idx]
         s = _sample(v["sigma_t"], p)
         rad = _sample(rad_grid, p) if np.ndim(rad_grid) else np.zeros((len(p), 3))
-        for sun, grid in zip(suns[: len(sun_grids)], sun_grids, strict=True):  # (ms_light) times it
-            tau = _tau_light(h, v, p, sun)[:, None]
+        taus = [_tau_light(h, v, p, sun) for sun in suns]  # each sun's, read once a step
+        for tau, grid in zip(taus[: len(sun_grids)], sun_grids, strict=True):  # (ms_light) times it
             power, limit = np.asarray(h["ms_light"]["power"]), h["ms_light"]["range"]
-            rad = rad + _sample(grid, p) * np.exp(-np.minimum(tau * power, limit))
+            rad = rad + _sample(grid, p) * np.exp(-np.minimum(tau[:, None] * power, limit))
         if any(b is not None for b in bases):  # per sun E sum_i c_i B_i(d), L_ms clamped at 0
-            for sun, basis, e in zip(suns, bases, direct, strict=True):
+            for sun, tau, basis, e in zip(suns, taus, bases, direct, strict=True):
                 if basis is not None:
                     view = (_sample(v[sun["shape"]["array"]], p) * basis[idx]).sum(axis=1)
                     if sun["shape"].get("light_power"):  # over the sun's grey light factor
-                        tau = _tau_light(h, v, p, sun)
                         power, limit = sun["shape"]["light_power"], h["ms_light"]["range"]
                         view = view * np.exp(-np.minimum(power * tau, limit))
                     rad = rad + 4 * math.pi * e * view[:, None]
                     if h.get("ms_forward"):  # the sun's light still in its beam, in closed form
                         to_light = -np.asarray(sun["direction"], float)
                         mu = d[idx] @ (to_light / np.linalg.norm(to_light))
-                        tau = _tau_light(h, v, p, sun)
                         rad = rad + 4 * math.pi * e * forward_light(lobes, h["ms_forward"], albedo, tau, mu)
             rad = np.maximum(rad, 0.0)
         a = np.exp(-s * dt[idx])
         L_in = rad.copy()  # sum over suns E p exp(-tau) + L_ms
-        for sun, e, factor in zip(suns, direct, factors, strict=True):
-            L_in += e * (factor[idx] * np.exp(-_tau_light(h, v, p, sun)))[:, None]
+        for tau, e, factor in zip(taus, direct, factors, strict=True):
+            L_in += e * (factor[idx] * np.exp(-tau))[:, None]
         L[idx] += (Tr[idx] * (1 - a))[:, None] * albedo * L_in
         Tr[idx] *= a
     behind = sky + sum((w * latlong_lookup(bg, d) for w, bg in maps), np.zeros((len(d), 3)))
