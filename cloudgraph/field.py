@@ -236,11 +236,11 @@ def bake_field(
             for c in range(len(marched)):
                 tau = marched_tau(c)
                 tau_grid = _scatter(near, tau[: len(points)], (nz, ny, nx))
-                samples = (fp.sub_coords, tau[len(points) :])
+                samples = tau[len(points) :]
                 if fine:
-                    taus.append(fine_depth(tau_grid, near.reshape(nz, ny, nx), *samples))
+                    taus.append(fine_depth(tau_grid, near.reshape(nz, ny, nx), fp.sub_coords, samples))
                 else:
-                    taus.append(fit_depth(tau_grid, fp.sigma_t, *samples))
+                    taus.append(fit_depth(tau_grid, fp.sigma_t, fp.sub_centres, samples))
         return taus
 
     gathered, walked = [], []

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import maximum_filter
 
-from .light_depth import sub_samples
+from .light_depth import sub_centres, sub_coords
 from .tracing import DensityField
 
 #: Field grid points at most (the density grid's resolution up to this; coarser beyond, by one
@@ -41,7 +41,8 @@ class FieldPoints:
     nx), which points are baked (``near``, flat: within one voxel of some density; the rest stay
     zero) and where those are (``points``, (M, 3) world), ``voxel`` its smallest world step, and
     the light march's sub-voxel samples in optically thick voxels (``sub``, (S, 3) world;
-    ``sub_coords``, the same in grid coordinates: light_depth.py). Made once, by the process that
+    ``sub_coords``, the same in grid coordinates; ``sub_centres``, the grid points they sit
+    around: light_depth.py). Made once, by the process that
     bakes the field (:meth:`of`, precompute.py), from the medium alone; the bake's chunks get the
     points they need as inputs."""
 
@@ -52,6 +53,7 @@ class FieldPoints:
     voxel: float
     sub: np.ndarray
     sub_coords: np.ndarray
+    sub_centres: np.ndarray
 
     @classmethod
     def of(cls, volume, medium: DensityField) -> FieldPoints:
@@ -69,9 +71,10 @@ class FieldPoints:
         near = maximum_filter(sigma_t > 0, size=3, mode="constant").ravel()
         points = to_world(u2w, units[near]).astype(np.float32)
         voxel = float((np.linalg.norm(u2w[:3, :3], axis=0) / np.asarray(shape)).min())
-        sub_coords = sub_samples(sigma_t, voxel)
-        sub = to_world(u2w, (sub_coords + 0.5) / np.asarray(shape)).astype(np.float32)
-        return cls(shape, sigma_t, near, points, voxel, sub, sub_coords)
+        centres = sub_centres(sigma_t, voxel)
+        coords = sub_coords(centres)
+        sub = to_world(u2w, (coords + 0.5) / np.asarray(shape)).astype(np.float32)
+        return cls(shape, sigma_t, near, points, voxel, sub, coords, centres)
 
 
 def to_world(u2w: np.ndarray, u: np.ndarray) -> np.ndarray:

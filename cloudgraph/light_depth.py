@@ -71,67 +71,80 @@ def depth_floor(power: float = TAU_POWER) -> float:
     return float(np.exp(-power * TAU_MAX))
 
 
-def sub_samples(sigma_t: np.ndarray, voxel: float) -> np.ndarray:
-    """(M, 3) grid coordinates (x, y, z; grid point i at i) of the sub-voxel samples around the
-    grid points of (nz, ny, nx) ``sigma_t`` whose neighbourhood holds a voxel of optical depth
-    THICK or more (``voxel``: the grid's step, world units)."""
+def sub_centres(sigma_t: np.ndarray, voxel: float) -> np.ndarray:
+    """(K, 3) grid coordinates (x, y, z; int) of the grid points of (nz, ny, nx) ``sigma_t``
+    whose neighbourhood holds a voxel of optical depth THICK or more (``voxel``: the grid's
+    step, world units): the sub-voxel samples sit around them (:func:`sub_coords`)."""
     od = sigma_t * voxel
     # where optical depth changes by THICK or more across a grid step: tau_light bends there
     # (inside a homogeneous block it is linear and the grid's values interpolate exactly)
     bends = maximum_filter(od, size=3, mode="constant") - minimum_filter(od, size=3, mode="constant")
     thick = maximum_filter(bends >= THICK, size=3, mode="constant")
     z, y, x = np.nonzero(thick)
-    centres = np.stack([x, y, z], axis=1).astype(np.float64)
+    return np.stack([x, y, z], axis=1)
+
+
+def sub_coords(centres: np.ndarray) -> np.ndarray:
+    """(8K, 3) grid coordinates of the sub-voxel samples around (K, 3) ``centres``: each
+    centre's :data:`SUB_OFFSETS` in turn."""
     return (centres[:, None, :] + SUB_OFFSETS[None, :, :]).reshape(-1, 3)
 
 
-def _corners(coords: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray]:
-    """Flat indices (M, 8) of the grid points around (M, 3) grid coordinates, clamped as the
-    texture clamps, and their trilinear weights (M, 8)."""
-    base = np.floor(coords).astype(np.int64)
-    frac = coords - base
-    ends = [(np.clip(base[:, a], 0, n - 1), np.clip(base[:, a] + 1, 0, n - 1)) for a, n in enumerate(shape)]
+#: Trilinear weight of a sub-voxel sample's corner along one axis, by the sample's side of its
+#: centre (offset -1/4, +1/4) and the corner (the lower, the upper grid point around it).
+_SIDE_WEIGHTS = np.array([[0.25, 0.75], [0.75, 0.25]])
+
+
+def _sample_corners(centres: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray]:
+    """Flat indices (8K, 8) of the grid points around the sub-voxel samples of (K, 3)
+    ``centres`` (in :func:`sub_coords`' order; corners z, y, x, the last fastest), clamped as
+    the texture clamps, and their trilinear weights (8, 8), the same around every centre: a
+    sample 1/4 below its centre reads the point below with 1/4 and the centre with 3/4."""
     nx, ny, _ = shape
-    index, weight = [], []
-    for dz in (0, 1):
-        for dy in (0, 1):
-            for dx in (0, 1):  # the 8 corners of a cell, not a loop over samples
-                index.append((ends[2][dz] * ny + ends[1][dy]) * nx + ends[0][dx])
-                w = (frac[:, 0] if dx else 1.0 - frac[:, 0]) * (frac[:, 1] if dy else 1.0 - frac[:, 1])
-                weight.append(w * (frac[:, 2] if dz else 1.0 - frac[:, 2]))
-    return np.stack(index, axis=1), np.stack(weight, axis=1)
+    sides = []  # per axis (K, side, corner): the grid points around each side's samples
+    for a, n in enumerate(shape):
+        c = centres[:, a].astype(np.int64)
+        lo, hi = np.maximum(c - 1, 0), np.minimum(c + 1, n - 1)
+        sides.append(np.stack([np.stack([lo, c], 1), np.stack([c, hi], 1)], 1))
+    x, y, z = sides  # index (K, side z, side y, side x, corner z, corner y, corner x)
+    index = (z[:, :, None, None, :, None, None] * ny + y[:, None, :, None, None, :, None]) * nx
+    index = index + x[:, None, None, :, None, None, :]
+    w = _SIDE_WEIGHTS
+    weight = w[None, None, :, None, None, :] * w[None, :, None, None, :, None]
+    weight = weight * w[:, None, None, :, None, None]  # (as x, y, then z multiply)
+    return index.reshape(-1, 8), weight.reshape(8, 8)
 
 
 def fit_depth(
-    tau: np.ndarray, sigma_t: np.ndarray, coords: np.ndarray, tau_samples: np.ndarray
+    tau: np.ndarray, sigma_t: np.ndarray, centres: np.ndarray, tau_samples: np.ndarray
 ) -> np.ndarray:
     """The grid values (nz, ny, nx) of optical depth whose interpolation (of q = T^TAU_POWER)
     best matches tau_light at the grid points (``tau``, exact) and at the sub-voxel samples
-    (``coords`` (M, 3) grid coordinates, ``tau_samples`` (M,) exact), by weighted least squares
-    in q (module docstring; LSQR from the exact point values). Grid points no sample touches
-    keep their value."""
-    if not len(coords):
+    around ``centres`` ((K, 3) grid coordinates; ``tau_samples`` (8K,) exact, in
+    :func:`sub_coords`' order), by weighted least squares in q (module docstring; LSQR from the
+    exact point values). Grid points no sample touches keep their value."""
+    if not len(centres):
         return tau
     shape = tau.shape[::-1]
     flat_tau, flat_sigma = tau.ravel().astype(np.float64), sigma_t.ravel().astype(np.float64)
     flat_q = np.exp(-TAU_POWER * flat_tau)
     q_samples = np.exp(-TAU_POWER * np.asarray(tau_samples, np.float64))
-    index, weight = _corners(coords, shape)
+    index, weight = _sample_corners(centres, shape)
     # The unknowns: the grid points the samples read (a mask: no sort of the samples' corners)
     touched = np.zeros(flat_tau.size, bool)
     touched[index.ravel()] = True
     free = np.flatnonzero(touched)
     column = np.cumsum(touched) - 1  # grid point -> its unknown
-    sigma_samples = (flat_sigma[index] * weight).sum(axis=1)
+    sigma_samples = (flat_sigma[index].reshape(-1, 8, 8) * weight).sum(axis=2).ravel()
     # Each equation weighted as a change of tau is by what its point scatters, sigma_t T^2:
     # dq = -TAU_POWER q dtau, so sqrt(sigma_t) T / q (a constant factor left out)
     w_samples = np.sqrt(sigma_samples) * q_samples ** (1.0 / TAU_POWER - 1.0)
     w_points = np.sqrt(flat_sigma[free]) * flat_q[free] ** (1.0 / TAU_POWER - 1.0)
-    m, k = len(coords), len(free)
+    m, k = len(index), len(free)
     # sample rows (8 corners each), then the grid points' own rows: CSR made in order, unsorted
     A = sp.csr_matrix(
         (
-            np.concatenate([(w_samples[:, None] * weight).ravel(), w_points]),
+            np.concatenate([(w_samples.reshape(-1, 8, 1) * weight).ravel(), w_points]),
             np.concatenate([column[index].ravel(), np.arange(k)]),
             np.concatenate([np.arange(0, 8 * m, 8), 8 * m + np.arange(k + 1)]),
         ),
