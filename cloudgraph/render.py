@@ -146,6 +146,8 @@ class GraphRenderer:
         # near_clip and far_clip are plain floats that Mitsuba compiles into the kernel: they stay
         # as the first camera set them (this integrator clips rays to the medium box itself).
         params.update()
+        if estimator == "field":  # (a field with view terms sums them toward this camera)
+            self.integrator(estimator).field.look_from(camera.eye)
         return np.array(mi.render(mscene, spp=spp, seed=seed), dtype=np.float32)
 
 

@@ -57,6 +57,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..errors import SceneError
+from ..field_grid import to_world, unit_points
 from ..mitsuba_scene import envmap_emitter
 from ..options import ESTIMATORS, PHASE_ESTIMATORS
 from ..phase import beam_phases, forward_light, hg_phase, phase_bounces, phase_walk, shape_basis
@@ -77,6 +78,7 @@ from ..tracing import (
     sample_collision,
     single_segment,
     step_length,
+    to_jit,
     uniform_sphere,
 )
 
@@ -85,15 +87,6 @@ FIELD_TR_MIN = 1e-3
 #: Midpoints of the field march's integral of sigma_t to the box where the light enters it
 #: (_tau_light; the page's shader takes as many).
 FIELD_EDGE_SAMPLES = 3
-
-
-#: Steps of the field's march per read of a sun's view terms (an anisotropic phase's field: a
-#: 20-channel texture at a quarter of the field grid's resolution, 8 steps a texel), their sum
-#: linear along the ray in between. The bench's dense cloud at g = 0.85 (warm 256^2 frame, 1
-#: spp, side-lit): 1 step 43.9 ms, 2 steps 39.1, 4 steps 40.7 (each read saved costs the steps
-#: between a field read of their own, in empty blocks too), the isotropic frame 22.4; the 12
-#: bench rows' field against gather the same within 0.03 points.
-VIEW_STEPS = 2
 
 
 @dataclass
@@ -107,11 +100,14 @@ class FieldTextures:
             light factor exp(-min(P tau_light, range)) (the header's ``ms_light``, ms_light's
             (P (3,), range); P 0 in a file of before it), at unit intensity where ``unit`` (a
             v1.1 field: the march multiplies the sun's irradiance in), else at its own; ms: the
-            other components' (sky, maps) mixed (:meth:`mixed_ms`; None without); shape: per
-            directional light, how its L_ms depends on the view (an anisotropic phase; None
-            without: phase.shape_basis), over the light factor of grey power ``shape_power``
-            (its entry's ``light_power``; 0 in a file of before it), frame: the basis's frame
-            (3, 3); all trilinear, clamped, over the unit cube.
+            other components' (sky, maps) mixed (:meth:`mixed_ms`; None without); all
+            trilinear, clamped, over the unit cube.
+        shape: per directional light, how its L_ms depends on the view (an anisotropic phase;
+            None without), as (the world points of its grid, a Point3f; their terms of
+            phase.shape_basis, SHAPE_TERMS Floats; the grid's (nz, ny, nx)), over the light
+            factor of grey power ``shape_power`` (its entry's ``light_power``; 0 in a file of
+            before it); frame: the basis's frame (3, 3); view_sum: per such light, the terms'
+            sum toward the camera, a one-channel texture (:meth:`look_from`).
         step: march step, world units; max_dtau: a step's optical depth at most (at its block's
             majorant); edge: within this of where the light enters the box, single scattering
             integrates sigma_t to it (world units; field.py's header, read by the page too).
@@ -132,6 +128,7 @@ class FieldTextures:
     edge: float
     max_steps: int
     forward: int = 0
+    view_sum: tuple = ()
 
     @staticmethod
     def mixed_ms(field, lights) -> np.ndarray | None:
@@ -152,7 +149,18 @@ class FieldTextures:
         taus = [field.array(c["tau"]) for c in suns] if suns is not None else [field.tau_light]
         sun_ms = [field.array(c["ms"]) for c in suns] if suns is not None else [field.radiance_ms]
         shapes = [c.get("shape") for c in suns] if suns is not None else [field.meta.get("ms_shape")]
-        arrays = [linear_texture(field.array(sh["array"])) if sh else None for sh in shapes]
+        u2w = np.asarray(field.meta["unit_to_world"], float)
+        arrays = [field.array(sh["array"]) if sh else None for sh in shapes]
+        views = [  # (in Dr.Jit: the points, and each term apart)
+            None
+            if a is None
+            else (
+                to_jit(mi.Point3f, to_world(u2w, unit_points(a.shape[2::-1]))),
+                [to_jit(mi.Float, a[..., i].ravel()) for i in range(a.shape[-1])],
+                a.shape[:3],
+            )
+            for a in arrays
+        ]
         diag = float(np.linalg.norm(np.subtract(*field.meta["world_bbox"][::-1])))
         blocks = sum(-(-n // BLOCK) for n in field.sigma_t.shape)
         ml = field.meta.get("ms_light", {"power": (0.0, 0.0, 0.0), "range": 0.0})
@@ -166,7 +174,7 @@ class FieldTextures:
             unit=suns is not None,
             ms_light=(tuple(map(float, ml["power"])), float(ml["range"])),
             ms=None if rest is None else linear_texture(rest),
-            shape=tuple(arrays),
+            shape=tuple(views),
             shape_power=tuple(float(sh.get("light_power", 0.0)) if sh else 0.0 for sh in shapes),
             frame=tuple(np.asarray(sh["frame"], float) if sh else None for sh in shapes),
             step=step,
@@ -175,6 +183,30 @@ class FieldTextures:
             max_steps=int(2 * (diag / step + dense + 3 * blocks) + 16),
             forward=int(field.meta.get("ms_forward", 0)),
         )
+
+    def look_from(self, eye) -> None:
+        """The view terms' sums toward a pinhole camera at ``eye`` (world): at each point x of a
+        sun's view grid, sum_i c_i(x) B_i(d) with d = (x - eye) / |x - eye|, the direction of
+        every camera ray through x, so that the march reads one channel where it read
+        SHAPE_TERMS (between grid points the sum interpolates as the terms do, to the change of
+        d across a texel). One small kernel per camera, the eye opaque: a new camera compiles
+        nothing."""
+        eye = dr.opaque(mi.Point3f, tuple(float(c) for c in eye))
+        sums = []
+        for view, frame, tex in zip(self.shape, self.frame, self.view_sum or self.shape, strict=True):
+            if view is None:
+                sums.append(None)
+                continue
+            points, terms, grid = view
+            d = dr.normalize(points - eye)
+            basis = shape_basis(*(dr.dot(mi.Vector3f(*map(float, e)), d) for e in frame))
+            value = mi.TensorXf(sum(t * b for t, b in zip(terms, basis, strict=True)), (*grid, 1))
+            if self.view_sum:  # (the same texture, new values)
+                tex.set_tensor(value)
+            else:
+                tex = mi.Texture3f(value, filter_mode=dr.FilterMode.Linear, wrap_mode=dr.WrapMode.Clamp)
+            sums.append(tex)
+        self.view_sum = tuple(sums)
 
 
 # ------------------------------------------------------------------ integrator
@@ -362,12 +394,11 @@ class GraphIntegrator(mi.SamplingIntegrator):
             active &= (t < t_end) & (Tr > 1e-4)
         return L + Tr * self._background(mi.Bool(True), d)
 
-    def _field_at(self, p, active, views, sums=None):
-        """(sigma_t, [tau_light per directional light], L_ms, sums) at world points p
-        (field.py); ``views``: per directional light, E and the basis functions at the ray's
-        direction (:meth:`_views`) where the field keeps how its L_ms depends on the view, else
-        None; ``sums``: per such light sum_i c_i B_i(d) read from its view terms' texture here
-        (returned), or given (the march's midpoints: :meth:`_field`)."""
+    def _field_at(self, p, active, views):
+        """(sigma_t, [tau_light per directional light], L_ms) at world points p (field.py);
+        ``views``: per directional light, E and its beam's phase powers at the ray's direction
+        (:meth:`_views`) where the field keeps how its L_ms depends on the view (its sum toward
+        the camera: :meth:`FieldTextures.look_from`), else None."""
         f = self.field
         pu = self.medium.world_to_unit @ mi.Point3f(p)
         taus = [self._tau_light(k, pu, active) for k in range(len(self.to_light))]
@@ -382,41 +413,27 @@ class GraphIntegrator(mi.SamplingIntegrator):
             if any(power):
                 sun *= dr.exp(-dr.minimum(mi.Color3f(*power) * taus[k], limit))
             L_ms += sun
-        if sums is None:
-            sums = [
-                None if v is None else self._view_sum(tex, v, pu, active)
-                for tex, v in zip(f.shape, views, strict=True)
-            ]
-        for k, (terms, view) in enumerate(zip(sums, views, strict=True)):  # the suns, unrolled
+        for k, view in enumerate(views):  # the suns, unrolled
             if view is not None:
+                terms = f.view_sum[k].eval(pu, active)[0]
                 if f.shape_power[k]:  # (kept over the sun's light factor, of grey power)
                     terms = terms * dr.exp(-dr.minimum(f.shape_power[k] * taus[k], limit))
                 L_ms += view[0] * terms
-                if view[2]:  # the sun's light still in its beam, in closed form (field_ms.py)
-                    L_ms += view[0] * forward_light(mi.Color3f(*self.albedo), taus[k], view[2])
+                if view[1]:  # the sun's light still in its beam, in closed form (field_ms.py)
+                    L_ms += view[0] * forward_light(mi.Color3f(*self.albedo), taus[k], view[1])
         if any(view is not None for view in views):  # (the series can ring below 0)
             L_ms = dr.maximum(L_ms, 0.0)
         sigma_t = self.medium.texture.eval(pu, active)[0] * self.medium.scale
-        return sigma_t, taus, L_ms, sums
-
-    @staticmethod
-    def _view_sum(tex, view, pu, active):
-        """sum_i c_i(pu) B_i(d) of one sun's view terms (before its light factor)."""
-        c = tex.eval(pu, active)
-        return sum((c[i] * P for i, P in enumerate(view[1])), mi.Float(0.0))
+        return sigma_t, taus, L_ms
 
     def _views(self, d):
-        """Per directional light: (E, the shape's basis functions at d, the phase's powers of
-        its beam's light at to_light . d (phase.beam_phases; [] where the field has none)),
-        constant along a ray, where the field holds the light's ``ms_shape`` (else None)."""
+        """Per directional light: (E, the phase's powers of its beam's light at to_light . d
+        (phase.beam_phases; [] where the field has none)), constant along a ray, where the field
+        holds the light's ``ms_shape`` (else None)."""
         return [
             None
             if frame is None
-            else (
-                E,
-                shape_basis(*(dr.dot(mi.Vector3f(*map(float, e)), d) for e in frame)),
-                beam_phases(self.lobes, self.field.forward, dr.dot(mi.Vector3f(*to_light), d), 1),
-            )
+            else (E, beam_phases(self.lobes, self.field.forward, dr.dot(mi.Vector3f(*to_light), d), 1))
             for frame, E, to_light in zip(self.field.frame, self.irradiance, self.to_light, strict=True)
         ]
 
@@ -448,9 +465,8 @@ class GraphIntegrator(mi.SamplingIntegrator):
         # Single scattering with tau_light linear in optical depth between the segment's ends
         # (single_segment: exact in a homogeneous medium, where exp(-tau_light) changes many
         # times over in one step of a dense cloud), L_ms linear (tracing.exponential_segment).
-        # Each step evaluates one new end point (a field with view terms: VIEW_STEPS steps an
-        # iteration, the view terms read at their ends only); one jitter per ray shifts the step
-        # grid against banding.
+        # Each step evaluates one new end point; one jitter per ray shifts the step grid against
+        # banding.
         f = self.field
         t, t_end = self.medium.box_interval(o, d)
         albedo = mi.Color3f(*self.albedo)
@@ -462,10 +478,7 @@ class GraphIntegrator(mi.SamplingIntegrator):
         active = active & (t < t_end)
         t = dr.select(active, t, 0.0)  # rays that miss may have no finite entry point
         views = self._views(d)
-        # a field whose L_ms depends on the view reads its view terms' texture every VIEW_STEPS
-        # steps, and takes their sum in between as linear along the ray (a Python-level switch)
-        n = VIEW_STEPS if any(view is not None for view in views) else 1
-        sigma0, taus0, ms0, sums0 = self._field_at(o + t * d, active, views)  # at the segment's start
+        sigma0, taus0, ms0 = self._field_at(o + t * d, active, views)  # values at the segment's start
         steps = mi.UInt32(0)  # Iteration cap: a ray takes each step and skips each block once
         started = mi.Bool(False)  # Whether the ray has reached a block with medium (and jittered)
         while dr.hint(active, label="field_march"):
@@ -473,34 +486,21 @@ class GraphIntegrator(mi.SamplingIntegrator):
             sigma_maj, t_leave = self.medium.block(o, d, t, active)
             empty = sigma_maj <= 0.0
             # the jitter applies where the medium begins; in optically thick blocks steps of at
-            # most max_dtau at the block's majorant (n steps: as far as the block goes)
+            # most max_dtau at the block's majorant
             step = dr.minimum(f.step, f.max_dtau / dr.maximum(sigma_maj, 1e-12))
             jittered = dr.select(started, step, first * step / f.step)
-            if n > 1:
-                jittered = dr.minimum(n * jittered, dr.maximum(t_leave - t, jittered))
             dt = step_length(empty, t, t_leave, t_end, jittered, 1e-3 * f.step)
-            sigma1, taus1, ms1, sums1 = self._field_at(o + (t + dt) * d, active, views)
-            ends = []
-            for j in range(1, n):  # the steps between, their view terms' sums interpolated
-                w = j / n
-                between = [
-                    None if sums1[k] is None else (1 - w) * sums0[k] + w * sums1[k] for k in range(len(sums1))
-                ]
-                ends.append(self._field_at(o + (t + w * dt) * d, active, views, between)[:3])
-            ends.append((sigma1, taus1, ms1))
-            for end in ends:  # the n segments (unrolled)
-                sigma_b, taus_b, ms_b = end
-                # (nothing to add across an empty block)
-                dtau = dr.select(empty, 0.0, 0.5 * (sigma0 + sigma_b) * (dt / n))
-                seg_Tr, seg_ms = exponential_segment(dtau, ms0, ms_b)
-                seg_ss = mi.Color3f(0.0)
-                for k in range(len(E)):  # the directional lights, unrolled
-                    seg_ss += E[k] * single_segment(dtau, taus0[k], taus_b[k])
-                L += Tr * albedo * (seg_ss + seg_ms)
-                Tr *= seg_Tr
-                sigma0, taus0, ms0 = sigma_b, taus_b, ms_b
+            sigma1, taus1, ms1 = self._field_at(o + (t + dt) * d, active, views)
+            # One segment (nothing to add across an empty block)
+            dtau = dr.select(empty, 0.0, 0.5 * (sigma0 + sigma1) * dt)
+            seg_Tr, seg_ms = exponential_segment(dtau, ms0, ms1)
+            seg_ss = mi.Color3f(0.0)
+            for k in range(len(E)):  # the directional lights, unrolled
+                seg_ss += E[k] * single_segment(dtau, taus0[k], taus1[k])
+            L += Tr * albedo * (seg_ss + seg_ms)
+            Tr *= seg_Tr
             t += dt
-            sums0 = sums1
+            sigma0, taus0, ms0 = sigma1, taus1, ms1
             steps += 1
             started |= ~empty
             active &= (t < t_end) & (Tr > FIELD_TR_MIN) & (steps < f.max_steps)

@@ -304,6 +304,44 @@ def test_a_nearly_isotropic_hg_is_within_noise_of_the_isotropic_image(sphere, tm
     assert abs(m["mean_ratio"] - 1) < 0.01 and m["binned_relMAE"] < 0.025
 
 
+def test_the_field_s_view_terms_are_summed_toward_each_camera_with_no_new_kernel(sphere, tmp_path):
+    # The march reads one channel per sun: the view terms' sum toward the camera, made per camera
+    # at the view grid's points (FieldTextures.look_from). Against numpy's sum of the file's
+    # terms at the directions from the eye, and a moved camera compiles nothing.
+    from cloudgraph.field_grid import to_world, unit_points
+    from cloudgraph.phase import shape_basis
+
+    from ..helpers import kernels_compiled_by_the_second
+
+    volume, scene = sphere["volume"], with_phase(sphere["scene"], {"type": "hg", "g": 0.85})
+    cache = precompute(scene, volume, "draft", CacheStore(tmp_path))
+    r = renderer(cache, volume, scene)
+    moved = scene.camera.model_copy(update={"eye": (30.0, 25.0, 45.0), "fov": 35.0})
+    (first, second), new = kernels_compiled_by_the_second(
+        lambda: r.render(scene.camera, spp=4, estimator="field"),
+        lambda: r.render(moved, spp=4, estimator="field"),
+    )
+    assert np.abs(first - second).mean() > 0.1 * first.mean() and not new, new
+
+    field = cache.field
+    entry = field.meta["ms_shape"]
+    terms = field.array(entry["array"])
+    x = to_world(np.asarray(field.meta["unit_to_world"], float), unit_points(terms.shape[2::-1]))
+    d = x - np.asarray(moved.eye)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+
+    def summed(d):  # sum_i c_i B_i(d) at the view grid's points
+        basis = np.stack(shape_basis(*(d @ np.asarray(e) for e in entry["frame"])), axis=1)
+        return (terms.reshape(-1, terms.shape[-1]) * basis).sum(axis=1)
+
+    expected = summed(d)
+    got = np.array(r.integrator("field").field.view_sum[0].tensor()).ravel()
+    scale = np.abs(expected).max()
+    assert scale > 0
+    np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-5 * scale)
+    assert np.abs(got - summed(-d)).max() > 0.1 * scale  # (facing the camera, not away)
+
+
 @pytest.mark.parametrize("estimator", ["free_flight", "march"])
 def test_estimators_without_the_phase_refuse_it(sphere, estimator):
     volume, scene, cache = sphere["volume"], sphere["scene"], sphere["cache"]
