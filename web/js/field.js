@@ -18,11 +18,8 @@ export class FieldError extends Error {
 export const MAX_FORWARD = 3;
 
 /** Channels of an ms_shape array: the functions of direction of cloudgraph/phase.py's
- * SHAPE_TERMS (shaders.js writes them out). */
+ * SHAPE_TERMS (fieldtex.js writes them out). */
 export const SHAPE_TERMS = 20;
-
-/** RGBA textures a shaped sun's view terms take (four channels each). */
-export const SHAPE_TEXTURES = Math.ceil(SHAPE_TERMS / 4);
 
 const ARRAYS = {
   sigma_t: { dims: 3 },

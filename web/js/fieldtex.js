@@ -15,18 +15,6 @@ export function interleaved(arrays, channels = arrays.length) {
   return out;
 }
 
-/** Channels [from, from + 4) of a float16 array of ``channels`` per texel, as RGBA (zero past
- * its last channel). */
-export function channelGroup(data, channels, from) {
-  const n = data.length / channels;
-  const out = new Uint16Array(4 * n);
-  const k = Math.min(4, channels - from);
-  for (let i = 0; i < n; i++) {
-    for (let c = 0; c < k; c++) out[4 * i + c] = data[i * channels + from + c];
-  }
-  return out;
-}
-
 const HALF = new Float32Array(65536);
 for (let h = 0; h < 65536; h++) HALF[h] = halfToFloat(h);
 
@@ -234,4 +222,64 @@ export function packedField(field, mix, { phase = false } = {}) {
     }
   }
   return { packed: out, sunT };
+}
+
+/**
+ * A shaped sun's view terms (an ms_shape array: float16 bits, SHAPE_TERMS channels, a scale
+ * each) as floats with their scales applied, and its grid's texel centres in the world
+ * (``unitToWorld``: 16 numbers, row-major), for viewSums: { terms, points, channels }.
+ */
+export function viewGrid(array, unitToWorld) {
+  const [nz, ny, nx, channels] = array.shape;
+  const terms = new Float32Array(array.data.length);
+  for (let i = 0; i < terms.length; i++) terms[i] = HALF[array.data[i]] * Number(array.scale[i % channels]);
+  const m = unitToWorld;
+  const points = new Float32Array(3 * nx * ny * nz);
+  for (let z = 0, i = 0; z < nz; z++) {
+    for (let y = 0; y < ny; y++) {
+      for (let x = 0; x < nx; x++, i += 3) {
+        const u = [(x + 0.5) / nx, (y + 0.5) / ny, (z + 0.5) / nz];
+        for (let r = 0; r < 3; r++) points[i + r] = m[4 * r] * u[0] + m[4 * r + 1] * u[1] + m[4 * r + 2] * u[2] + m[4 * r + 3];
+      }
+    }
+  }
+  return { terms, points, channels };
+}
+
+/**
+ * A shaped sun's view terms summed toward a pinhole camera at ``eye`` (world): at each texel x
+ * of its grid (viewGrid's), sum_i c_i B_i(d) with d = (x - eye) / |x - eye| in the sun's
+ * ``frame`` (9 numbers, rows e_x, e_y, e_z), the direction of every camera ray through x, as
+ * the server's march takes it (cloudgraph/integrators/graph.py, look_from): the march reads
+ * one channel where it would read SHAPE_TERMS.
+ */
+export function viewSums(grid, frame, eye) {
+  const { terms, points, channels } = grid;
+  const out = new Float32Array(points.length / 3);
+  const B = new Float64Array(channels);
+  for (let i = 0; i < out.length; i++) {
+    const d = [points[3 * i] - eye[0], points[3 * i + 1] - eye[1], points[3 * i + 2] - eye[2]];
+    const r = Math.hypot(d[0], d[1], d[2]) || 1;
+    const [x, y, z] = [0, 3, 6].map((e) => (frame[e] * d[0] + frame[e + 1] * d[1] + frame[e + 2] * d[2]) / r);
+    viewBasis(x, y, z, B);
+    let sum = 0;
+    for (let c = 0; c < channels; c++) sum += terms[i * channels + c] * B[c];
+    out[i] = sum;
+  }
+  return out;
+}
+
+/**
+ * The view terms' functions of direction (x, y, z) in a sun's frame, into B (api.md's order,
+ * cloudgraph/phase.py's shape_basis): y, z, x, 6xy, 3yz, P2(z), 3xz, 3(x^2 - y^2), P3..P8(z),
+ * then degree 3's 15(3x^2 y - y^3), 30xyz, 1.5(5z^2 - 1) y, 1.5(5z^2 - 1) x, 15z(x^2 - y^2),
+ * 15(x^3 - 3xy^2) (their weights are in the coefficients).
+ */
+function viewBasis(x, y, z, B) {
+  const P = [1, z];
+  for (let n = 1; n < 8; n++) P.push(((2 * n + 1) * z * P[n] - n * P[n - 1]) / (n + 1));
+  const q = 1.5 * (5 * z * z - 1);
+  const values = [y, z, x, 6 * x * y, 3 * y * z, P[2], 3 * x * z, 3 * (x * x - y * y), ...P.slice(3, 9)];
+  values.push(15 * (3 * x * x * y - y * y * y), 30 * x * y * z, q * y, q * x, 15 * z * (x * x - y * y), 15 * (x * x * x - 3 * x * y * y));
+  for (let c = 0; c < B.length; c++) B[c] = values[c];
 }

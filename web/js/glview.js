@@ -2,8 +2,7 @@
 // read-back of an image at a given size for comparisons. Knows nothing of the DOM around it.
 
 import { fragmentShader, textureUnits, VERTEX } from "./shaders.js";
-import { channelGroup, depthTexels, halfFloats, interleaved, mixedBackground, mixedRadiance, MOVING_PHASE_SUNS, packedField, texelChannels } from "./fieldtex.js";
-import { SHAPE_TERMS, SHAPE_TEXTURES } from "./field.js";
+import { depthTexels, halfFloats, interleaved, mixedBackground, mixedRadiance, MOVING_PHASE_SUNS, packedField, texelChannels, viewGrid, viewSums } from "./fieldtex.js";
 import { linearToSrgb8, srgbToLinear } from "./imagemath.js";
 import { cross, normalize, sub } from "./camera.js";
 
@@ -157,7 +156,7 @@ export class GLView {
    * GPU bytes of a field's textures: R16F density, 16F textures of the suns' tau (a channel
    * each, at the tau grid's resolution), RGBA16F-padded radiance (with ms_light each sun's apart too), R16F majorant, the RGBA16F (sigma_t, L_in) texture of the
    * moving camera with its mipmaps (and of an anisotropic field its suns' transmittance, 16F a
-   * channel each, RGB padded), SHAPE_TEXTURES RGBA16F textures of view terms a shaped sun, and an
+   * channel each, RGB padded), an R16F texture of view sums a shaped sun, and an
    * RGBA16F-padded lat-long background of the environment maps.
    */
   static textureBytes(field) {
@@ -166,7 +165,7 @@ export class GLView {
     const moving = ((8 + (movingPhase(field) ? 2 * texelChannels(field.suns.length) : 0)) * 8) / 7; // with mips
     const density = 2 + moving;
     const taus = [0, 4].reduce((b, from) => b + 2 * texelChannels(field.suns.length - from) * count(field.arrays.tau_light), 0);
-    const shape = shapedSuns(field).reduce((n, k) => n + 8 * SHAPE_TEXTURES * count(field.arrays[field.suns[k].shape.array]), 0);
+    const shape = shapedSuns(field).reduce((n, k) => n + 2 * count(field.arrays[field.suns[k].shape.array]), 0);
     const env = field.components.find((c) => c.background);
     const background = env ? 8 * field.arrays[env.background].shape[0] * field.arrays[env.background].shape[1] : 0;
     // the others' L_ms (with ms_light: none where every light is a sun), each sun's apart
@@ -285,7 +284,6 @@ export class GLView {
       return make(group[0], gl[internal], gl[format], data, gl.LINEAR, gl.FLOAT);
     };
     const shaped = shapedSuns(field);
-    const groups = Array.from({ length: SHAPE_TEXTURES }, (_, g) => 4 * g);
     const layout = { suns: field.suns.length, shaped, env: !!m.env, sunMs: !!field.msLight };
     const phase = movingPhase(field);
     const programs = {
@@ -302,12 +300,11 @@ export class GLView {
       ...this.makeMoving(field, m),
       env: m.env ? this.makeBackground(m.env) : null,
     };
-    for (const k of shaped) {
-      const shape = field.arrays[field.suns[k].shape.array];
-      groups.forEach((from, g) => {
-        textures[`shape${k}_${g}`] = make(shape, gl.RGBA16F, gl.RGBA, channelGroup(shape.data, SHAPE_TERMS, from), gl.LINEAR);
-      });
-    }
+    // a shaped sun's view terms summed toward the camera, made when it moves (draw)
+    const views = shaped.map((k) => viewGrid(field.arrays[field.suns[k].shape.array], field.unitToWorld));
+    shaped.forEach((k, j) => {
+      textures[`view${k}`] = make(field.arrays[field.suns[k].shape.array], gl.R16F, gl.RED, new Float32Array(views[j].points.length / 3), gl.LINEAR, gl.FLOAT);
+    });
     const err = gl.getError();
     if (err !== gl.NO_ERROR && !gl.isContextLost()) {
       Object.values(textures).forEach((t) => t && gl.deleteTexture(t));
@@ -346,17 +343,17 @@ export class GLView {
       radianceKey: field.header.radiance_key,
       phase: phaseLobes(field.header.phase),
       forward: field.forward,
-      // per shaped sun: its view terms' scales, four a texture, frame and
-      // the grey power of the light factor they are kept over
-      shapes: shaped.map((k) => {
-        const shape = field.arrays[field.suns[k].shape.array];
-        return {
-          sun: k,
-          scale: groups.flatMap((from) => [0, 1, 2, 3].map((c) => (from + c < SHAPE_TERMS ? shape.scale[from + c] : 0))), // (zero past the last)
-          frame: field.suns[k].shape.frame,
-          lightPower: field.suns[k].shape.lightPower,
-        };
-      }),
+      // per shaped sun: its view terms (as floats: viewGrid), frame, the grey power of the light
+      // factor they are kept over and its texture's shape; viewEye: the eye they were last
+      // summed toward
+      shapes: shaped.map((k, j) => ({
+        sun: k,
+        grid: views[j],
+        frame: field.suns[k].shape.frame,
+        lightPower: field.suns[k].shape.lightPower,
+        shape: field.arrays[field.suns[k].shape.array].shape.slice(0, 3),
+      })),
+      viewEye: null,
       toLight,
     };
     this.warmUp(field.worldBbox);
@@ -441,11 +438,8 @@ export class GLView {
     set("uniform3fv", "uPhase", f.phase || [0, 0, 1]);
     set("uniform1i", "uBeamOrders", f.phase ? f.forward : 0);
     if (!fast) {
-      for (const { sun, scale, frame, lightPower } of f.shapes) {
-        set("uniform4fv", `uShapeScale${sun}[0]`, scale);
-        set("uniformMatrix3fv", `uShapeFrame${sun}`, true, frame);
-        set("uniform1f", `uShapePower${sun}`, lightPower);
-      }
+      for (const { sun, lightPower } of f.shapes) set("uniform1f", `uShapePower${sun}`, lightPower);
+      this.sumViews(cam.eye);
     }
     set("uniform3fv", "uAlbedo", f.albedo);
     set("uniform1f", "uGain", 2 ** exposure);
@@ -467,7 +461,7 @@ export class GLView {
       ["uTauA", t.tauA],
       ["uSunT", t.sunT],
       ["uTauB", t.tauB],
-      ...(fast ? [] : f.shapes.flatMap(({ sun }) => Array.from({ length: SHAPE_TEXTURES }, (_, g) => [`uShape${sun}_${g}`, t[`shape${sun}_${g}`]]))),
+      ...(fast ? [] : f.shapes.map(({ sun }) => [`uView${sun}`, t[`view${sun}`]])),
     ];
     let unit = 0;
     for (const [name, tex] of [...units, ["uEnv", t.env]]) {
@@ -478,6 +472,21 @@ export class GLView {
     }
     gl.bindVertexArray(this.vao);
     gl.drawArrays(gl.TRIANGLES, 0, 3);
+  }
+
+  /** The shaped suns' view terms summed toward a camera at ``eye`` (fieldtex.js viewSums) into
+   * their textures, where the eye moved since they were last (the exact march reads them). */
+  sumViews(eye) {
+    const gl = this.gl;
+    const f = this.field;
+    if (!f.shapes.length || (f.viewEye && f.viewEye.every((v, i) => v === eye[i]))) return;
+    for (const { sun, grid, frame, shape } of f.shapes) {
+      const [nz, ny, nx] = shape;
+      gl.bindTexture(gl.TEXTURE_3D, this.textures[`view${sun}`]);
+      gl.pixelStorei(gl.UNPACK_ALIGNMENT, 4);
+      gl.texSubImage3D(gl.TEXTURE_3D, 0, 0, 0, 0, nx, ny, nz, gl.RED, gl.FLOAT, viewSums(grid, frame, eye));
+    }
+    f.viewEye = eye.slice();
   }
 
   /** Draws onto the canvas, resizing its drawing buffer to width x height first. */

@@ -23,7 +23,7 @@
 // background along d) at the ray's end.
 // then display: clamp(L 2^exposure, 0, 1) through the sRGB transfer.
 
-import { MAX_FORWARD, SHAPE_TEXTURES } from "./field.js";
+import { MAX_FORWARD } from "./field.js";
 
 export const VERTEX = `#version 300 es
 // One triangle that covers the viewport; no vertex buffer.
@@ -36,10 +36,10 @@ void main() {
 export const MAX_STEPS = 4096;
 
 /** Texture units a program of ``suns`` directional lights, ``shaped`` of them with view terms,
- * binds: uDens, uRad, uMaj, the tau textures, SHAPE_TEXTURES for each shaped sun, and with
+ * binds: uDens, uRad, uMaj, the tau textures, one of view sums for each shaped sun, and with
  * ``sunMs`` (a field whose header has ms_light) one of L_ms for each sun. */
 export function textureUnits(suns, shaped, sunMs = false) {
-  return 3 + tauTextures(suns) + SHAPE_TEXTURES * shaped + (sunMs ? suns : 0);
+  return 3 + tauTextures(suns) + shaped + (sunMs ? suns : 0);
 }
 
 /** Textures of the suns' tau_light texels, a channel each: suns 1-4 (uTauA), 5-8 (uTauB). */
@@ -66,15 +66,8 @@ export function fragmentShader({ packed = false, suns = 1, shaped = [], env = fa
   const shapedSuns = packed ? [] : shaped;
   const shapeDecls = shapedSuns
     .map(
-      (k) => `uniform sampler3D uShape${k}_0;  // sun ${k}'s ms_shape channels 0-3 / their scales (linear)
-uniform sampler3D uShape${k}_1;  // 4-7
-uniform sampler3D uShape${k}_2;  // 8-11
-uniform sampler3D uShape${k}_3;  // 12-15
-uniform sampler3D uShape${k}_4;  // 16-19
-uniform vec4 uShapeScale${k}[5]; // the channels' scales
-uniform mat3 uShapeFrame${k};    // rows e_x, e_y, e_z of its frame (e_z toward the sun)
-uniform float uShapePower${k};   // its terms are over exp(-min(P tau_light, uMsRange)), P this
-vec4 gB${k}[5];                  // its functions of direction at the ray's direction`,
+      (k) => `uniform sampler3D uView${k};      // R: sun ${k}'s view terms summed toward the camera (glview.js; linear)
+uniform float uShapePower${k};   // its terms are over exp(-min(P tau_light, uMsRange)), P this`,
     )
     .join("\n");
   const tauLines = range(suns)
@@ -82,11 +75,7 @@ vec4 gB${k}[5];                  // its functions of direction at the ray's dire
     .join("\n");
   const viewLines = shapedSuns
     .map(
-      (k) => `  view += uDirect[${k}] * exp(-min(uShapePower${k} * s.tau[${k}], uMsRange)) * (dot(texture(uShape${k}_0, p) * uShapeScale${k}[0], gB${k}[0])
-              + dot(texture(uShape${k}_1, p) * uShapeScale${k}[1], gB${k}[1])
-              + dot(texture(uShape${k}_2, p) * uShapeScale${k}[2], gB${k}[2])
-              + dot(texture(uShape${k}_3, p) * uShapeScale${k}[3], gB${k}[3])
-              + dot(texture(uShape${k}_4, p) * uShapeScale${k}[4], gB${k}[4]));
+      (k) => `  view += uDirect[${k}] * exp(-min(uShapePower${k} * s.tau[${k}], uMsRange)) * texture(uView${k}, p).r;
   beam += beamLight(${k}, s.tau[${k}], exp(-s.tau[${k}]));`,
     )
     .join("\n");
@@ -98,7 +87,6 @@ vec4 gB${k}[5];                  // its functions of direction at the ray's dire
         .map((k) => `  s.ms += texture(uSunRad${k}, p).rgb * uSunRadScale[${k}] * exp(-min(uMsPower * s.tau[${k}], vec3(uMsRange)));`)
         .join("\n")
     : "";
-  const basisLines = shapedSuns.map((k) => `  viewBasis(uShapeFrame${k} * d, gB${k});`).join("\n");
   return `#version 300 es
 #define PACKED ${packed ? 1 : 0}
 #define SUNS ${suns}
@@ -214,24 +202,6 @@ vec3 beamLight(int k, float tau, float T) {
   return T * sum;
 }
 
-// The view terms' functions of direction at v, the ray's direction in a sun's frame (constant
-// along a ray): in the frame's coordinates (x, y, z), y, z, x, 6xy, 3yz, P2(z), 3xz,
-// 3(x^2 - y^2), P3..P8(z), then degree 3's 15(3x^2 y - y^3), 30xyz, 1.5(5z^2 - 1) y,
-// 1.5(5z^2 - 1) x, 15z(x^2 - y^2), 15(x^3 - 3xy^2) (their weights are in the coefficients).
-void viewBasis(vec3 v, out vec4 B[5]) {
-  float x = v.x, y = v.y, z = v.z;
-  float P[9];
-  P[0] = 1.0;
-  P[1] = z;
-  for (int n = 1; n < 8; n++) P[n + 1] = (float(2 * n + 1) * z * P[n] - float(n) * P[n - 1]) / float(n + 1);
-  B[0] = vec4(y, z, x, 6.0 * x * y);
-  B[1] = vec4(3.0 * y * z, P[2], 3.0 * x * z, 3.0 * (x * x - y * y));
-  B[2] = vec4(P[3], P[4], P[5], P[6]);
-  B[3] = vec4(P[7], P[8], 15.0 * (3.0 * x * x * y - y * y * y), 30.0 * x * y * z);
-  float q = 1.5 * (5.0 * z * z - 1.0);
-  B[4] = vec4(q * y, q * x, 15.0 * z * (x * x - y * y), 15.0 * (x * x * x - 3.0 * x * y * y));
-}
-
 // Optical depth to a sun at the unit point pc (clamped to the box): the grid's ("grid"), or
 // where the light enters the box, within uEdge, the integral of sigma_t to it (3 midpoints; the
 // grid's texture clamps there). A point on the box's surface, where a ray enters it, counts as
@@ -320,7 +290,6 @@ void main() {
       if (n <= uBeamOrders) gBeam[k * MAX_FORWARD + n - 1] = c * phasePower(n + 1, dot(uToLight[k], d));
     }
   }
-${basisLines}
   float Tr = 1.0;               // transmittance from the eye
   if (tEnd > t) {
     float frac = 1.0 - jitter(uvec2(gl_FragCoord.xy));  // the first segment's share of a step
