@@ -162,12 +162,13 @@ def test_intensities_and_limits_in_words(page):  # noqa: F811
         // two suns with view terms and their own L_ms beside an environment map: 9 units
         const two = { ...shaped(2), msLight, components: [{ type: 'envmap', background: 'bg' }] };
         two.arrays.bg = { shape: [4, 8, 3] };
+        const fields = [shaped(1), two, { ...shaped(8), msLight }];
         const units = view.gl.getParameter(view.gl.MAX_TEXTURE_IMAGE_UNITS);
-        const all = [shaped(1), two, { ...shaped(8), msLight }].map((f) => view.tooLarge(f));
+        const all = fields.map((f) => view.tooLarge(f));
         // a device of WebGL2's least, 16 units (this one has more)
         const get = view.gl.getParameter;
         view.gl.getParameter = (p) => (p === view.gl.MAX_TEXTURE_IMAGE_UNITS ? 16 : get.call(view.gl, p));
-        const [one, two16, eight] = [shaped(1), two, { ...shaped(8), msLight }].map((f) => view.tooLarge(f));
+        const [one, two16, eight] = fields.map((f) => view.tooLarge(f));
         return { units, all, one, two: two16, eight,
                  mixed: lightsOf(field, { suns: [[1, 2, 3]], sky: [4, 5, 6] }),
                  none: lightsOf(field, null),

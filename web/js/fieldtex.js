@@ -257,11 +257,16 @@ export function viewSums(grid, frame, eye) {
   const { terms, points, channels } = grid;
   const out = new Float32Array(points.length / 3);
   const B = new Float64Array(channels);
+  const P = new Float64Array(9);
   for (let i = 0; i < out.length; i++) {
-    const d = [points[3 * i] - eye[0], points[3 * i + 1] - eye[1], points[3 * i + 2] - eye[2]];
-    const r = Math.hypot(d[0], d[1], d[2]) || 1;
-    const [x, y, z] = [0, 3, 6].map((e) => (frame[e] * d[0] + frame[e + 1] * d[1] + frame[e + 2] * d[2]) / r);
-    viewBasis(x, y, z, B);
+    const dx = points[3 * i] - eye[0];
+    const dy = points[3 * i + 1] - eye[1];
+    const dz = points[3 * i + 2] - eye[2];
+    const r = Math.hypot(dx, dy, dz) || 1;
+    const x = (frame[0] * dx + frame[1] * dy + frame[2] * dz) / r;
+    const y = (frame[3] * dx + frame[4] * dy + frame[5] * dz) / r;
+    const z = (frame[6] * dx + frame[7] * dy + frame[8] * dz) / r;
+    viewBasis(x, y, z, B, P);
     let sum = 0;
     for (let c = 0; c < channels; c++) sum += terms[i * channels + c] * B[c];
     out[i] = sum;
@@ -275,11 +280,25 @@ export function viewSums(grid, frame, eye) {
  * then degree 3's 15(3x^2 y - y^3), 30xyz, 1.5(5z^2 - 1) y, 1.5(5z^2 - 1) x, 15z(x^2 - y^2),
  * 15(x^3 - 3xy^2) (their weights are in the coefficients).
  */
-function viewBasis(x, y, z, B) {
-  const P = [1, z];
-  for (let n = 1; n < 8; n++) P.push(((2 * n + 1) * z * P[n] - n * P[n - 1]) / (n + 1));
+function viewBasis(x, y, z, B, P) {
+  // (B and P, the Legendre polynomials' scratch, are the caller's: no array a texel)
+  P[0] = 1;
+  P[1] = z;
+  for (let n = 1; n < 8; n++) P[n + 1] = ((2 * n + 1) * z * P[n] - n * P[n - 1]) / (n + 1);
   const q = 1.5 * (5 * z * z - 1);
-  const values = [y, z, x, 6 * x * y, 3 * y * z, P[2], 3 * x * z, 3 * (x * x - y * y), ...P.slice(3, 9)];
-  values.push(15 * (3 * x * x * y - y * y * y), 30 * x * y * z, q * y, q * x, 15 * z * (x * x - y * y), 15 * (x * x * x - 3 * x * y * y));
-  for (let c = 0; c < B.length; c++) B[c] = values[c];
+  B[0] = y;
+  B[1] = z;
+  B[2] = x;
+  B[3] = 6 * x * y;
+  B[4] = 3 * y * z;
+  B[5] = P[2];
+  B[6] = 3 * x * z;
+  B[7] = 3 * (x * x - y * y);
+  for (let n = 3; n <= 8; n++) B[5 + n] = P[n]; // B[8..13] = P3..P8
+  B[14] = 15 * (3 * x * x * y - y * y * y);
+  B[15] = 30 * x * y * z;
+  B[16] = q * y;
+  B[17] = q * x;
+  B[18] = 15 * z * (x * x - y * y);
+  B[19] = 15 * (x * x * x - 3 * x * y * y);
 }
