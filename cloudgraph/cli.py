@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 from .errors import CloudgraphError
+from .heap import keep_freed_memory
 from .options import ESTIMATORS, INTEGRATORS, QUALITIES
 
 
@@ -253,6 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    keep_freed_memory()  # (a precompute's arrays reuse each other's pages: heap.py)
     try:
         args.func(args)
     except CloudgraphError as err:

@@ -40,7 +40,8 @@ PRIORITY = {**dict.fromkeys(stages.LATE_STAGES, -1), **dict.fromkeys(stages.LAST
 
 class CloudgraphVariant(WorkerPlugin):
     """Sets the client's Mitsuba variant on every Dask worker, those that join later too (the same
-    variant computes the same bytes), and Dr.Jit's threads (``CLOUDGRAPH_WORKER_THREADS``)."""
+    variant computes the same bytes), Dr.Jit's threads (``CLOUDGRAPH_WORKER_THREADS``) and the
+    heap (cloudgraph/heap.py)."""
 
     name = "cloudgraph-variant"
 
@@ -48,9 +49,11 @@ class CloudgraphVariant(WorkerPlugin):
         self.variant = variant
 
     def setup(self, worker) -> None:
+        from cloudgraph.heap import keep_freed_memory
         from cloudgraph.mitsuba_scene import set_variant
         from cloudgraph_service.settings import Settings
 
+        keep_freed_memory()  # (the chunks' arrays reuse each other's pages)
         set_variant(self.variant)
         if (threads := Settings.from_env().WORKER_THREADS) > 0:
             dr.set_thread_count(threads)

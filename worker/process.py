@@ -28,6 +28,7 @@ from rq import Queue, SimpleWorker
 from rq.job import JobStatus
 from rq.timeouts import JobTimeoutException, UnixSignalDeathPenalty
 
+from cloudgraph.heap import keep_freed_memory, release_freed_memory
 from cloudgraph_service.errors import public_message
 from cloudgraph_service.protocol import HEARTBEAT_GRACE_S, cancel_key, end_dependents
 from cloudgraph_service.settings import Settings
@@ -173,6 +174,7 @@ class CloudgraphWorker(SimpleWorker):
                 self.running.clear()
             stop.set()
             t.join()
+            release_freed_memory()  # (kept for reuse within the job: cloudgraph/heap.py)
         self.set_state("idle")
 
     def handle_exception(self, job, *exc_info):
@@ -232,6 +234,7 @@ def run(running: Running, name: str) -> None:
     faulthandler.register(signal.SIGUSR1, all_threads=True)  # every thread's stack into the log
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     settings = Settings.from_env()
+    keep_freed_memory()
     from cloudgraph.mitsuba_scene import set_variant
 
     variant = set_variant()
