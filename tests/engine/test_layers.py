@@ -13,8 +13,8 @@ from pathlib import Path
 ENGINE = Path(__file__).resolve().parents[2] / "cloudgraph"
 
 LAYERS: list[set[str]] = [
-    # foundations: errors, shared lists, atomic writes, the package (format version)
-    {"cloudgraph", "integrators", "errors", "options", "files", "chunks", "graph", "transport"},
+    # foundations: errors, shared lists, atomic writes, the package (format version), the heap
+    {"cloudgraph", "integrators", "errors", "options", "files", "chunks", "graph", "transport", "heap"},
     # the scene spec, images and metrics, the VDB header, the graph file's format
     {"vdb", "scene", "image", "metrics", "graph_file", "light_depth"},
     {"volume"},
