@@ -64,10 +64,11 @@ def graph_key(vol_id: str, density_scale: float, build_params: dict) -> str:
 #: (``ms_shape``), 3 since the sun's light in its beam is the march's in closed form
 #: (``ms_forward``), 4 since the view terms are kept over the sun's light factor (``light_power``),
 #: 5 since they hold the degree-3 harmonics at half weight (20 terms, phase.SHAPE_TERMS), 6 since
-#: the walks also estimate the sun's light by flights drawn about it (phase.SUN_LOBE_NEE).
+#: the walks also estimate the sun's light by flights drawn about it (phase.SUN_LOBE_NEE), 7
+#: since they take the beam's orders as a control variate (phase.BEAM_CV_ORDERS).
 #: Its caches' radiance keys hold it, so that fields baked before are baked again; isotropic keys
 #: are as they were.
-PHASE_FIELD_VERSION = 6
+PHASE_FIELD_VERSION = 7
 
 
 def radiance_key(
