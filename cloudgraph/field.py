@@ -58,7 +58,7 @@ from .light_depth import FINE_POWER, TAU_MAX, TAU_POWER, fine_depth, fine_shape,
 from .lights import Lights
 from .mitsuba_scene import envmap_emitter
 from .params import GRADIENT, suns_apart
-from .phase import SHAPE_DEGREES, light_frame, phase_bounces
+from .phase import SHAPE_DEGREES, light_frame, memory_bounces
 from .spatial import NodeGrid, node_bins
 from .tracing import (
     block_majorant,
@@ -265,7 +265,7 @@ def bake_field(
                 "irradiance": lights.cached[c],
                 "lobes": lobes,
                 # (x's own event is the camera's: the walks take one fewer)
-                "bounces": np.array([phase_bounces(phase) - 1 if max_depth < 0 else max_depth - 1]),
+                "bounces": np.array([memory_bounces(phase) - 1 if max_depth < 0 else max_depth - 1]),
                 "tail": np.array([int(max_depth < 0)]),
                 "tau": light_depths()[c],  # (a sun's component c is directional light c)
                 "tau_power": np.array([tau_power]),

@@ -349,7 +349,8 @@ class GraphIntegrator(mi.SamplingIntegrator):
         # gather with an anisotropic phase: the first ``bounces`` scattering events exactly
         # (phase.phase_walk), then albedo L'_search of the similarity-scaled graph. The graph is
         # isotropic: its error is in where light goes next, which the phase remembers for
-        # log(PHASE_MEMORY) / log|g_eff| events (phase_bounces), so those are taken exactly.
+        # log(PHASE_MEMORY) / log|g_eff| events, so those are taken exactly, and at least
+        # GATHER_MIN_BOUNCES (phase_bounces): the scaled graph reads low on thin clouds.
         # A sky: seen behind the medium, and where a flight leaves it (weight p / pdf = 1).
         albedo = mi.Color3f(*self.albedo)
         tail = (lambda q, m: albedo * self.grid.lookup(q, self.eps2, m)) if self.tail else None
