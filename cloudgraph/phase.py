@@ -171,7 +171,7 @@ def memory_bounces(phase) -> int:
 
 def phase_bounces(phase) -> int:
     """Exact scattering events of ``gather`` before the graph takes over: :func:`memory_bounces`,
-    and at least GATHER_MIN_BOUNCES for an anisotropic phase (g = 0.5: 12, g = 0.85: 25)."""
+    and at least GATHER_MIN_BOUNCES for an anisotropic phase (g = 0.5: 16, g = 0.85: 25)."""
     k = memory_bounces(phase)
     return k if k == 1 else max(k, GATHER_MIN_BOUNCES)
 
