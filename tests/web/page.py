@@ -82,6 +82,15 @@ def wait_rest(page, after_frames: int) -> None:
     )
 
 
+def reset_view(page) -> None:
+    """Back to the home view, drawn at rest. A step that reads the view's corners or the cloud's
+    pixels starts here: the camera an earlier step's orbit left turned by as many pointer events
+    as the loaded machine delivered."""
+    frames = frames_drawn(page)
+    page.click("#view-reset")
+    wait_rest(page, frames)
+
+
 # ... of a PNG (given as base64), decoded in the page.
 PNG_PIXELS_JS = (
     "async (b64) => { "

@@ -11,6 +11,7 @@ from .page import (
     assert_realtime_is_the_server_field,
     errors_shown,
     frames_drawn,
+    reset_view,
     shot,
     shown_pixels,
     wait_rest,
@@ -34,11 +35,7 @@ BEFORE = {}
 
 
 def test_a_sky_relights_then_is_drawn_behind_the_cloud_like_the_server(page):
-    # the home view, whose corners show the background: the last step's orbit turns the camera
-    # by as many pointer events as the loaded machine delivered, which can bring smoke into one
-    frames = frames_drawn(page)
-    page.click("#view-reset")
-    wait_rest(page, frames)
+    reset_view(page)  # (its corners show the background)
     dark = corners(shown_pixels(page))
     old_key = BEFORE["key"] = page.get_attribute("#viewport", "data-field-key")
     change(page, "#sky", "0.5")

@@ -15,6 +15,7 @@ from .page import (
     assert_realtime_is_the_server_field,
     errors_shown,
     frames_drawn,
+    reset_view,
     shot,
     shown_pixels,
     wait_relit,
@@ -33,10 +34,7 @@ def cloud_mean(pixels: list[float], cloud: np.ndarray) -> float:
 
 
 def test_a_second_sun_and_a_sky_relight_then_are_drawn_like_the_server(page):
-    # the home view (the last step's orbit turns the camera by as much as the machine delivered)
-    frames = frames_drawn(page)
-    page.click("#view-reset")
-    wait_rest(page, frames)
+    reset_view(page)
     old_key = BEFORE["key"] = page.get_attribute("#viewport", "data-field-key")
     page.click("#sun-add")
     row = "#sun-list .sun-row:nth-child(1)"
