@@ -37,7 +37,6 @@ from .phase import (
 from .tracing import (
     ISOTROPIC_PDF,
     depth_at,
-    depth_texture,
     envmap_nee,
     envmap_pdf,
     envmap_seen,
@@ -263,7 +262,7 @@ def _march_ms(
     return L
 
 
-def walk_ms(medium, G_tex, points: np.ndarray, inputs: dict, seed: int) -> np.ndarray:
+def walk_ms(medium, G_tex, tau, points: np.ndarray, inputs: dict, seed: int) -> np.ndarray:
     """(M, 3 + len(SHAPE_DEGREES)) a sun's L_ms at (M, 3) world points in an anisotropic
     medium: what reaches each point after its first scattering, as a function of the camera
     ray's direction d, projected on orthogonal functions B_i of direction (phase.shape_basis, in
@@ -278,8 +277,10 @@ def walk_ms(medium, G_tex, points: np.ndarray, inputs: dict, seed: int) -> np.nd
     after them; x's own event is the camera's), less the sun's light still in its beam where
     ``inputs["forward"]`` orders of it are the camera march's, in closed form (FORWARD_ORDERS).
     WALKS walks a point, their first directions half uniform and half from the phase about the
-    light (one-sample mixture pdf). Returns c_0 (RGB) and the c_i at unit intensity (the
-    channels' mean over the irradiance's), so that the scene's mix scales them."""
+    light (one-sample mixture pdf). ``G_tex``: :func:`g_texture` of ``inputs["G"]``; ``tau``:
+    the sun's tau_light texture (tracing.depth_texture of ``inputs["tau"]``). Returns c_0 (RGB)
+    and the c_i at unit intensity (the channels' mean over the irradiance's), so that the
+    scene's mix scales them."""
     m, k = len(points), WALKS
     lobes = tuple((float(w), float(g)) for w, g in np.asarray(inputs["lobes"], float))
     to_light = tuple(float(c) for c in inputs["to_light"])
@@ -299,8 +300,7 @@ def walk_ms(medium, G_tex, points: np.ndarray, inputs: dict, seed: int) -> np.nd
     def nothing(mask, w):  # a sun's component: nothing behind the medium
         return mi.Color3f(0.0)
 
-    power = float(inputs["tau_power"][0])
-    tau = depth_texture(inputs["tau"], power)
+    power = float(inputs["tau_power"][0])  # (tau: its texture, tracing.depth_texture)
 
     def sun_tr(i, p, mask):  # the bake's own light march, interpolated as the camera's march does
         return dr.exp(-depth_at(tau, medium.world_to_unit @ mi.Point3f(p), mask, power))
