@@ -54,6 +54,7 @@ from .field_ms import (
     view_light_power,
     walk_ms,
     walk_smoothing,
+    walks_per_point,
 )
 from .graph import gradient_operators, node_gradients
 from .light_depth import FINE_POWER, TAU_MAX, TAU_POWER, fine_depth, fine_shape, fit_depth
@@ -77,9 +78,13 @@ from .tracing import (
 #: The multiple-scattering grid is this many times coarser per axis than the field grid, or
 #: coarser still until at most MS_MAX_POINTS of its points lie next to the medium. In a dense
 #: cloud L_ms changes within a voxel near lit surfaces: at the field grid's resolution the
-#: dense bench cloud's field reads 1.6 % from converged gather, at half of it 2.7 %.
+#: dense bench cloud's field reads 1.6 % from converged gather, at half of it 2.7 %. Where a
+#: sun's L_ms is walked (an anisotropic phase) the grid may hold MS_WALK_POINTS, with half the
+#: walks a point over MS_MAX_POINTS (field_ms.walks_per_point): smoke1 at g = 0.5 read a point
+#: closer to gather side-lit on a grid 2x coarser than the field's than on one 3x coarser.
 MS_COARSEN = 1
 MS_MAX_POINTS = 1 << 17
+MS_WALK_POINTS = 1 << 18
 #: Multiple-scattering grid points per chunk (times field_ms.MS_DIRECTIONS rays), and field points per
 #: chunk of the light march: chunks bound the device memory and may run on other workers.
 MS_CHUNK = 1 << 12
@@ -210,11 +215,13 @@ def bake_field(
         )
         for c, G in enumerate(node_G)
     ]
-    k = MS_COARSEN  # coarser still where the points to gather would be over MS_MAX_POINTS
+    walks = lobes is not None and len(lights.directions) > 0  # (each sun's L_ms walked, below)
+    max_points = MS_WALK_POINTS if walks else MS_MAX_POINTS
+    k = MS_COARSEN  # coarser still where the points to gather would be over max_points
     while True:
         ms_shape = tuple(-(-n // k) for n in shape)
         ms_near = _coarse_mask(near.reshape(nz, ny, nx), ms_shape, k)
-        if ms_near.sum() <= MS_MAX_POINTS:
+        if ms_near.sum() <= max_points:
             break
         k += 1
     q = to_world(u2w, unit_points(ms_shape)[ms_near]).astype(np.float32)
@@ -272,6 +279,7 @@ def bake_field(
                 "tau": light_depths()[c],  # (a sun's component c is directional light c)
                 "tau_power": np.array([tau_power]),
                 "forward": np.array([forward]),
+                "walks": np.array([walks_per_point(len(q), MS_MAX_POINTS)]),
             }
             walked.append(c)
         gathered.append(chunks(builder, "field_ms", inputs))

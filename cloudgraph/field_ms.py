@@ -74,7 +74,13 @@ MS_TR_MIN = 1e-2
 #: G^0.5, 5.09 % / 1.047 with G^0.3 (gather 4.32 % / 1.037); side-lit 2.63, 2.58, 2.56 %.
 G_POWER = 0.3
 #: An anisotropic phase: walks per multiple-scattering point (phase.phase_walk, its first
-#: events exact, from directions half uniform and half from the phase about the light).
+#: events exact, from directions half uniform and half from the phase about the light); half
+#: as many on a grid of more than field.MS_MAX_POINTS points (a large cloud's, allowed up to
+#: field.MS_WALK_POINTS), so that no grid takes more walks than the largest did at WALKS.
+#: smoke1 at g = 0.5 (field at 16 spp against gather at 1024 on one cache, binned relMAE side-
+#: lit, albedo 1 / 0.8; precompute): its grid 3x coarser than the field's, 64 walks, 2.67 /
+#: 1.87 %, 7.2-8.0 s; 2x coarser, 64 walks, 1.49 / 1.26 %, 11.1-11.9 s; 2x coarser, 32 walks,
+#: 1.68 / 1.31 %, 9.3-9.8 s (isotropic: 7.6-8.5 s).
 WALKS = 64
 #: ... and the width (standard deviation, in multiple-scattering grid points) of the Gaussian
 #: that smooths the walks' estimates over the grid: 0 up to |g_eff| = 0.5, WALK_SMOOTH from
@@ -147,6 +153,12 @@ def forward_orders(phase, max_depth: int = -1) -> int:
     if phase is None or phase.isotropic or abs(phase.mean_cosine()) < FORWARD_FROM:
         return 0
     return FORWARD_ORDERS if max_depth < 0 else max(0, min(FORWARD_ORDERS, max_depth - 1))
+
+
+def walks_per_point(points: int, max_points: int) -> int:
+    """Walks a point of a multiple-scattering grid of ``points`` points: WALKS, half as many over
+    ``max_points`` (field.MS_MAX_POINTS)."""
+    return WALKS if points <= max_points else WALKS // 2
 
 
 def walk_smoothing(phase) -> float:
@@ -276,12 +288,12 @@ def walk_ms(medium, G_tex, tau, points: np.ndarray, inputs: dict, seed: int) -> 
     along w brings back (phase.phase_walk: the medium's next events exact, the graph's ``G``
     after them; x's own event is the camera's), less the sun's light still in its beam where
     ``inputs["forward"]`` orders of it are the camera march's, in closed form (FORWARD_ORDERS).
-    WALKS walks a point, their first directions half uniform and half from the phase about the
-    light (one-sample mixture pdf). ``G_tex``: :func:`g_texture` of ``inputs["G"]``; ``tau``:
-    the sun's tau_light texture (tracing.depth_texture of ``inputs["tau"]``). Returns c_0 (RGB)
-    and the c_i at unit intensity (the channels' mean over the irradiance's), so that the
-    scene's mix scales them."""
-    m, k = len(points), WALKS
+    ``inputs["walks"]`` walks a point (:func:`walks_per_point`), their first directions half
+    uniform and half from the phase about the light (one-sample mixture pdf). ``G_tex``:
+    :func:`g_texture` of ``inputs["G"]``; ``tau``: the sun's tau_light texture
+    (tracing.depth_texture of ``inputs["tau"]``). Returns c_0 (RGB) and the c_i at unit
+    intensity (the channels' mean over the irradiance's), so that the scene's mix scales them."""
+    m, k = len(points), int(inputs["walks"][0])
     lobes = tuple((float(w), float(g)) for w, g in np.asarray(inputs["lobes"], float))
     to_light = tuple(float(c) for c in inputs["to_light"])
     E = np.asarray(inputs["irradiance"], float)
