@@ -314,9 +314,9 @@ def bake_field(
     # power (field_ms.view_light_power), before they are halved
     ms_light, view_power = None, None
     if taus:
-        power = ms_light_power(albedo)
+        power = ms_light_power(albedo, walks)
         ms_light = {"power": power.tolist(), "range": MS_LIGHT_RANGE}
-        view_power = view_light_power(albedo)
+        view_power = view_light_power(albedo, walks)
         pu = to_jit(mi.Point3f, unit_points(ms_shape).astype(np.float32))
         for c in range(len(ms)):
             if lights.kind(c) == "directional":  # (a sun's component c is directional light c)
