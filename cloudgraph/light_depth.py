@@ -29,7 +29,6 @@ exact march on the bench's dense and thick clouds, either view; T^0.3 reads it 0
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.ndimage import maximum_filter, minimum_filter
 
@@ -90,29 +89,26 @@ def sub_coords(centres: np.ndarray) -> np.ndarray:
     return (centres[:, None, :] + SUB_OFFSETS[None, :, :]).reshape(-1, 3)
 
 
-#: Trilinear weight of a sub-voxel sample's corner along one axis, by the sample's side of its
-#: centre (offset -1/4, +1/4) and the corner (the lower, the upper grid point around it).
-_SIDE_WEIGHTS = np.array([[0.25, 0.75], [0.75, 0.25]])
+#: Trilinear weights of the sub-voxel samples around a centre along one axis (rows: the sample
+#: 1/4 below the centre, 1/4 above) on the grid points there (columns: below, the centre, above):
+#: a sample 1/4 below its centre reads the point below with 1/4 and the centre with 3/4. Over the
+#: three axes (z, y, x; x fastest, as SUB_OFFSETS and the 27 neighbours are ordered) it is the
+#: (8, 27) matrix _SAMPLE_WEIGHTS: each sample's weight on each of its centre's neighbours.
+_AXIS_WEIGHTS = np.array([[0.25, 0.75, 0.0], [0.0, 0.75, 0.25]])
+_SAMPLE_WEIGHTS = np.kron(_AXIS_WEIGHTS, np.kron(_AXIS_WEIGHTS, _AXIS_WEIGHTS))
 
 
-def _sample_corners(centres: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray]:
-    """Flat indices (8K, 8) of the grid points around the sub-voxel samples of (K, 3)
-    ``centres`` (in :func:`sub_coords`' order; corners z, y, x, the last fastest), clamped as
-    the texture clamps, and their trilinear weights (8, 8), the same around every centre: a
-    sample 1/4 below its centre reads the point below with 1/4 and the centre with 3/4."""
+def _neighbours(centres: np.ndarray, shape) -> np.ndarray:
+    """Flat indices (K, 27) of the grid points around (K, 3) ``centres`` (x, y, z; offsets -1, 0,
+    +1 per axis, z outermost and x fastest), clamped as the texture clamps."""
     nx, ny, _ = shape
-    sides = []  # per axis (K, side, corner): the grid points around each side's samples
+    axes = []
     for a, n in enumerate(shape):
         c = centres[:, a].astype(np.int64)
-        lo, hi = np.maximum(c - 1, 0), np.minimum(c + 1, n - 1)
-        sides.append(np.stack([np.stack([lo, c], 1), np.stack([c, hi], 1)], 1))
-    x, y, z = sides  # index (K, side z, side y, side x, corner z, corner y, corner x)
-    index = (z[:, :, None, None, :, None, None] * ny + y[:, None, :, None, None, :, None]) * nx
-    index = index + x[:, None, None, :, None, None, :]
-    w = _SIDE_WEIGHTS
-    weight = w[None, None, :, None, None, :] * w[None, :, None, None, :, None]
-    weight = weight * w[:, None, None, :, None, None]  # (as x, y, then z multiply)
-    return index.reshape(-1, 8), weight.reshape(8, 8)
+        axes.append(np.stack([np.maximum(c - 1, 0), c, np.minimum(c + 1, n - 1)], axis=1))
+    x, y, z = axes
+    index = (z[:, :, None, None] * ny + y[:, None, :, None]) * nx + x[:, None, None, :]
+    return index.reshape(-1, 27)
 
 
 def fit_depth(
@@ -125,34 +121,37 @@ def fit_depth(
     exact point values). Grid points no sample touches keep their value."""
     if not len(centres):
         return tau
-    shape = tau.shape[::-1]
     flat_tau, flat_sigma = tau.ravel().astype(np.float64), sigma_t.ravel().astype(np.float64)
     flat_q = np.exp(-TAU_POWER * flat_tau)
-    q_samples = np.exp(-TAU_POWER * np.asarray(tau_samples, np.float64))
-    index, weight = _sample_corners(centres, shape)
+    q_samples = np.exp(-TAU_POWER * np.asarray(tau_samples, np.float64)).reshape(-1, 8)
+    near = _neighbours(centres, tau.shape[::-1])  # (K, 27): every sample reads its centre's
     # The unknowns: the grid points the samples read (a mask: no sort of the samples' corners)
     touched = np.zeros(flat_tau.size, bool)
-    touched[index.ravel()] = True
+    touched[near.ravel()] = True
     free = np.flatnonzero(touched)
-    column = np.cumsum(touched) - 1  # grid point -> its unknown
-    sigma_samples = (flat_sigma[index].reshape(-1, 8, 8) * weight).sum(axis=2).ravel()
+    column = (np.cumsum(touched) - 1)[near]  # (K, 27): each neighbour's unknown
+    sigma_samples = flat_sigma[near] @ _SAMPLE_WEIGHTS.T  # (K, 8)
     # Each equation weighted as a change of tau is by what its point scatters, sigma_t T^2:
     # dq = -TAU_POWER q dtau, so sqrt(sigma_t) T / q (a constant factor left out)
     w_samples = np.sqrt(sigma_samples) * q_samples ** (1.0 / TAU_POWER - 1.0)
     w_points = np.sqrt(flat_sigma[free]) * flat_q[free] ** (1.0 / TAU_POWER - 1.0)
-    m, k = len(index), len(free)
-    # sample rows (8 corners each), then the grid points' own rows: CSR made in order, unsorted
-    A = sp.csr_matrix(
-        (
-            np.concatenate([(w_samples.reshape(-1, 8, 1) * weight).ravel(), w_points]),
-            np.concatenate([column[index].ravel(), np.arange(k)]),
-            np.concatenate([np.arange(0, 8 * m, 8), 8 * m + np.arange(k + 1)]),
-        ),
-        shape=(m + k, k),
-    )
-    b = np.concatenate([w_samples * q_samples, w_points * flat_q[free]])
+    m, k = w_samples.size, len(free)
+
+    # A: the samples' rows (their 27 neighbours' unknowns by _SAMPLE_WEIGHTS), then the grid
+    # points' own rows, each weighted; applied without being made (a third of the entries)
+    def matvec(x):
+        x = np.ravel(x)
+        return np.concatenate([(w_samples * (x[column] @ _SAMPLE_WEIGHTS.T)).ravel(), w_points * x])
+
+    def rmatvec(y):
+        y = np.ravel(y)
+        spread = (w_samples * y[:m].reshape(-1, 8)) @ _SAMPLE_WEIGHTS  # (K, 27)
+        return np.bincount(column.ravel(), spread.ravel(), minlength=k) + w_points * y[m:]
+
+    A = spla.LinearOperator((m + k, k), matvec=matvec, rmatvec=rmatvec, dtype=np.float64)
+    b = np.concatenate([(w_samples * q_samples).ravel(), w_points * flat_q[free]])
     x0 = flat_q[free]
-    dx = spla.lsqr(A, b - A @ x0, atol=1e-6, btol=1e-6, iter_lim=ITERATIONS)[0]
+    dx = spla.lsqr(A, b - matvec(x0), atol=1e-6, btol=1e-6, iter_lim=ITERATIONS)[0]
     q = flat_q.copy()
     q[free] = np.clip(x0 + dx, depth_floor(), 1.0)
     return (-np.log(q) / TAU_POWER).reshape(tau.shape).astype(np.float32)
