@@ -443,31 +443,15 @@ def test_a_large_cloud_s_walked_grid_is_finer_with_half_the_walks(variant, tmp_p
     # (measured: the field's own grid with 32 walks 2.51 %, 2x coarser with 64 walks 4.61 %).
     import cloudgraph.field as field_module
 
-    volume, scale = dense_cloud(2.0)
-    scene = with_phase(
-        medium_scene(volume, scale, albedo=0.8, eye_dir=SIDE, size=32), {"type": "hg", "g": 0.5}
-    )
-    store = CacheStore(tmp_path)
+    field_error = dense_field_error(tmp_path, SIDE, 0.8, g=0.5)
     monkeypatch.setattr(field_module, "MS_MAX_POINTS", 3000)
-    gather = None
-
-    def field_error(walk_points: int):
-        nonlocal gather
-        monkeypatch.setattr(field_module, "MS_WALK_POINTS", walk_points)
-        for f in (tmp_path / "fields").glob("*"):
-            f.unlink()
-        cache = precompute(scene, volume, "draft", store)
-        r = renderer(cache, volume, scene)
-        if gather is None:
-            gather = r.render(scene.camera, 1024, seed=1).astype(np.float64)
-        field = r.render(scene.camera, 16, seed=1, estimator="field").astype(np.float64)
-        return cache.stats, bias_metrics(field, gather)
-
-    stats, m = field_error(12000)
-    assert stats["field_ms_coarsen"] == 1 and stats["field_ms_points"] > 3000, stats
+    monkeypatch.setattr(field_module, "MS_WALK_POINTS", 12000)
+    m = field_error()
+    assert m["stats"]["field_ms_coarsen"] == 1 and m["stats"]["field_ms_points"] > 3000, m
     assert m["binned_relMAE"] < 0.035 and abs(m["mean_ratio"] - 1) < 0.02, m
-    stats, coarse = field_error(3000)  # (the rule of before: the isotropic grid's limit)
-    assert stats["field_ms_coarsen"] == 2, stats
+    monkeypatch.setattr(field_module, "MS_WALK_POINTS", 3000)  # (the rule of before: the isotropic limit)
+    coarse = field_error()
+    assert coarse["stats"]["field_ms_coarsen"] == 2, coarse
     assert coarse["binned_relMAE"] > 0.04, coarse
 
 
@@ -481,26 +465,10 @@ def test_the_walked_light_factor_reads_a_back_lit_dense_cloud_s_mean_as_gather_d
     # spp against gather at 1024 on one cache; measured 0.9934, with 0.2 0.9865).
     import cloudgraph.field_ms as field_ms
 
-    volume, scale = dense_cloud(4.0)
-    scene = with_phase(
-        medium_scene(volume, scale, albedo=1.0, eye_dir=LIGHT, size=32), {"type": "hg", "g": 0.5}
-    )
-    store = CacheStore(tmp_path)
-    gather = None
-
-    def field_mean() -> float:
-        nonlocal gather
-        for f in (tmp_path / "fields").glob("*"):
-            f.unlink()
-        r = renderer(precompute(scene, volume, "draft", store), volume, scene)
-        if gather is None:
-            gather = r.render(scene.camera, 1024, seed=1).astype(np.float64)
-        field = r.render(scene.camera, 16, seed=1, estimator="field").astype(np.float64)
-        return bias_metrics(field, gather)["mean_ratio"]
-
-    assert abs(field_mean() - 1) < 0.0085
+    field_error = dense_field_error(tmp_path, LIGHT, 1.0, g=0.5, optical_depth=4.0)
+    assert abs(field_error()["mean_ratio"] - 1) < 0.0085
     monkeypatch.setattr(field_ms, "WALK_LIGHT_POWER_0", field_ms.MS_LIGHT_POWER[0])
-    assert field_mean() < 0.989
+    assert field_error()["mean_ratio"] < 0.989
 
 
 def sphere_quadrature(n: int):
@@ -563,13 +531,13 @@ def test_a_blend_s_powers_are_its_lobes_products():
     assert len(lobe_power(((1.0, 0.85),), 3)) == 1
 
 
-def dense_field_error(tmp_path, eye_dir, albedo: float):
-    """The tests' dense cloud at g = 0.85 (32^2, draft) seen from ``eye_dir``: a function that
-    bakes its field again (as the code then is) and gives its bias_metrics against gather at
-    1024 spp on the same cache."""
-    volume, scale = dense_cloud(2.0)
+def dense_field_error(tmp_path, eye_dir, albedo: float, g: float = 0.85, optical_depth: float = 2.0):
+    """The tests' dense cloud (densest voxel at ``optical_depth``) at ``g`` (32^2, draft) seen
+    from ``eye_dir``: a function that bakes its field again (as the code then is) and gives its
+    bias_metrics against gather at 1024 spp on the same cache, with the bake's ``stats``."""
+    volume, scale = dense_cloud(optical_depth)
     scene = with_phase(
-        medium_scene(volume, scale, albedo=albedo, eye_dir=eye_dir, size=32), {"type": "hg", "g": 0.85}
+        medium_scene(volume, scale, albedo=albedo, eye_dir=eye_dir, size=32), {"type": "hg", "g": g}
     )
     store = CacheStore(tmp_path)
     cache = precompute(scene, volume, "draft", store)
@@ -580,7 +548,7 @@ def dense_field_error(tmp_path, eye_dir, albedo: float):
             f.unlink()
         again = precompute(scene, volume, "draft", store)
         field = renderer(again, volume, scene).render(scene.camera, 16, seed=1, estimator="field")
-        return bias_metrics(field.astype(np.float64), gather)
+        return {**bias_metrics(field.astype(np.float64), gather), "stats": again.stats}
 
     return field_error
 
