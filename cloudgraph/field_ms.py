@@ -143,7 +143,7 @@ def ms_light_power(albedo, walked: bool = False) -> np.ndarray:
     return p0 + MS_LIGHT_POWER[1] * np.sqrt(3.0 * (1.0 - a))
 
 
-def view_light_power(albedo, walked: bool = True) -> float:
+def view_light_power(albedo, walked: bool) -> float:
     """The grey P of the light factor that a sun's view terms are kept over (their one channel):
     the mean of :func:`ms_light_power`'s (the view terms are the walks'). Like c_0 they fall
     below a lit surface as the light does, and kept over the factor they interpolate between
