@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from . import ENGINE_FORMAT_VERSION
-from .files import write_atomic
+from .files import default_cache_dir, write_atomic
 from .lights import Lights
 from .params import LIGHTING, BuildParams
 
@@ -130,10 +130,6 @@ def cache_keys(scene: Scene, volume: Volume, params: BuildParams) -> dict:
         lights.key() if lights.basis else None,
     )
     return {"volume_id": vid, "graph_key": gkey, "radiance_key": rkey}
-
-
-def default_cache_dir() -> Path:
-    return Path(os.environ.get("CLOUDGRAPH_CACHE_DIR", Path.home() / ".cache" / "cloudgraph"))
 
 
 class CacheStore:

@@ -57,6 +57,7 @@ from .field_ms import (
     walks_per_point,
 )
 from .graph import gradient_operators, node_gradients
+from .image import latlong_directions
 from .light_depth import FINE_POWER, TAU_MAX, TAU_POWER, fine_depth, fine_shape, fit_depth
 from .lights import Lights
 from .mitsuba_scene import envmap_emitter
@@ -453,17 +454,6 @@ def _lookup(inputs: dict, q: np.ndarray, node_radius: float) -> np.ndarray:
     G = grid.lookup(to_jit(mi.Point3f, q), (0.05 * node_radius) ** 2, mi.Bool(True))
     dr.eval(G)  # one kernel for the three channels
     return fill_unreached(from_jit(G), q, positions, node_G)
-
-
-def latlong_directions(width: int) -> np.ndarray:
-    """(width // 2, width, 3) unit directions at the texel centres of a lat-long image: row j
-    at theta = pi (j + 0.5) / h from +y, column i at phi = 2 pi (i + 0.5) / w, and
-    d = (sin theta sin phi, cos theta, -sin theta cos phi) (api.md, the field's ``background``)."""
-    h = width // 2
-    theta = np.pi * (np.arange(h) + 0.5) / h
-    phi = 2 * np.pi * (np.arange(width) + 0.5) / width
-    st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
-    return np.stack(np.broadcast_arrays(st * np.sin(phi), ct, -st * np.cos(phi)), axis=-1)
 
 
 def background_map(path: str, width: int = BACKGROUND_WIDTH) -> np.ndarray:

@@ -19,7 +19,7 @@ dilated by one voxel: empty-space skipping). What the arrays hold: field.py. A f
 first component's are ``tau_light`` and ``radiance_ms``, the others' ``tau_light_K`` and
 ``radiance_ms_K`` after ``majorant`` (``tau_light`` is zero without a directional light); an
 environment map's component also its ``background``: the array ``background_K``, (h, 2h, 3)
-the map's radiance seen along the directions of field.latlong_directions, at scale 1.
+the map's radiance seen along the directions of image.latlong_directions, at scale 1.
 A field of an anisotropic phase also holds, per directional light, ``ms_shape`` (header
 ``ms_shape``, or the component's ``shape``: its array ``ms_shape_K``, its frame and
 ``light_power``): (mz', my', mx', 20) coefficients c_i of the functions of direction of
@@ -146,16 +146,21 @@ def shape_name(c: int) -> str:
     return "ms_shape" if c == 0 else f"ms_shape_{c}"
 
 
-def combined(parts: list[RadianceField], radiance_key: str) -> RadianceField:
+def combined(parts: list[RadianceField], radiance_key: str, sun_base=None) -> RadianceField:
     """The field of several light components from each component's own v1.1 field (one light
     each, of one graph and medium: their sigma_t and majorant are the same), in ``parts``'
-    order: each part's arrays renamed as component_names gives them."""
+    order: each part's arrays renamed as component_names gives them. ``sun_base``: (D, 3) the
+    directional components' colours at their light's scale 1 (lights.Lights.sun_base), each
+    kept as the entry's ``base`` where it is not 1 (a sunsky's sun)."""
     first = parts[0]
     meta = {**first.meta, "radiance_key": radiance_key, "lights": []}
     arrays = {}
+    bases = [] if sun_base is None else [list(map(float, b)) for b in np.asarray(sun_base, float)]
     for c, part in enumerate(parts):
         (entry,) = part.meta["lights"]
         renamed = {**entry, **component_names(c, entry["type"])}
+        if c < len(bases) and bases[c] != [1.0, 1.0, 1.0]:
+            renamed["base"] = bases[c]
         for role in ("ms", "tau", "background"):
             if role in entry:
                 arrays[renamed[role]] = part.array(entry[role])

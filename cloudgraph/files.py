@@ -35,3 +35,8 @@ def write_atomic(path: Path, data: bytes, sync: bool = True) -> Path:
     with atomic_writer(path, sync) as f:
         f.write(data)
     return Path(path)
+
+
+def default_cache_dir() -> Path:
+    """The engine's cache folder: $CLOUDGRAPH_CACHE_DIR, or ~/.cache/cloudgraph."""
+    return Path(os.environ.get("CLOUDGRAPH_CACHE_DIR", Path.home() / ".cache" / "cloudgraph"))

@@ -49,3 +49,14 @@ def png_bytes(image: np.ndarray, exposure: float = 0.0) -> bytes:
 
 def write_png(image: np.ndarray, path: str | Path, exposure: float = 0.0) -> None:
     Path(path).write_bytes(png_bytes(image, exposure))
+
+
+def latlong_directions(width: int) -> np.ndarray:
+    """(width // 2, width, 3) unit directions at the texel centres of a lat-long image: row j
+    at theta = pi (j + 0.5) / h from +y, column i at phi = 2 pi (i + 0.5) / w, and
+    d = (sin theta sin phi, cos theta, -sin theta cos phi) (api.md, the field's ``background``)."""
+    h = width // 2
+    theta = np.pi * (np.arange(h) + 0.5) / h
+    phi = 2 * np.pi * (np.arange(width) + 0.5) / width
+    st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
+    return np.stack(np.broadcast_arrays(st * np.sin(phi), ct, -st * np.cos(phi)), axis=-1)

@@ -12,6 +12,7 @@ import numpy as np
 
 from .errors import SceneError
 from .scene import CameraSpec, PhaseSpec, Scene
+from .sunsky import expanded, sunsky_dict
 from .volume import Volume
 
 #: Russian roulette depth that turns roulette off in practice (docs/method.md, "What is known about
@@ -134,16 +135,23 @@ def scene_dict(scene: Scene, volume: Volume, integrator: dict | None = None) -> 
     }
 
 
+#: The light types that are Mitsuba environment emitters (one a scene).
+ENVIRONMENTS = ("sky", "envmap", "sunsky")
+
+
 def emitter_dicts(lights) -> list[dict]:
     """The scene's lights as Mitsuba's emitters (emitter_dict), in order; Mitsuba takes one
-    environment emitter a scene, so several (skies, maps) are one, their sum
-    (:func:`environment_sum`), in the first one's place."""
-    env = [li for li in lights if li.type in ("sky", "envmap")]
+    environment emitter a scene, so several (skies, maps, a sunsky's sky) are one, their sum
+    (:func:`environment_sum`), in the first one's place, and a sunsky's sun then a
+    ``directional`` light (sunsky.expanded)."""
+    env = [li for li in lights if li.type in ENVIRONMENTS]
+    if len(env) > 1 and any(li.type == "sunsky" for li in env):  # its sky as a map, summed
+        return emitter_dicts(expanded(lights))
     if len(env) <= 1:
         return [emitter_dict(li) for li in lights]
     out = []
     for li in lights:
-        if li.type not in ("sky", "envmap"):
+        if li.type not in ENVIRONMENTS:
             out.append(emitter_dict(li))
         elif li is env[0]:
             out.append(environment_sum(env))
@@ -180,7 +188,9 @@ def _rgb_image(path) -> np.ndarray:
 
 def emitter_dict(light) -> dict:
     """A scene light as Mitsuba's emitter: ``directional``, a ``sky`` as ``constant``, an
-    ``envmap`` as ``envmap`` (its file read by Mitsuba)."""
+    ``envmap`` as ``envmap`` (its file read by Mitsuba), a ``sunsky`` as ``sunsky``."""
+    if light.type == "sunsky":
+        return sunsky_dict(light)
     if light.type == "sky":
         return {"type": "constant", "radiance": {"type": "rgb", "value": list(light.intensity_rgb())}}
     if light.type == "envmap":

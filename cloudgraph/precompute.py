@@ -350,7 +350,7 @@ def _composed(scene, volume, quality, store, progress, chunks, keys, build_overr
     first = read_radiance(store.radiance_path(parts[0].keys["radiance_key"]))[1]
     kept = {**first, "light_components": len(parts)}
     store.save_radiance(rkey, radiance_file(pack_radiance(radiance, radiance_gather), kept))
-    field = combined([p.field for p in parts], rkey)
+    field = combined([p.field for p in parts], rkey, Lights.of(scene).sun_base)
     field_data = field.encode()
     store.save_field(rkey, field_data)
     progress("done", 1.0)

@@ -260,10 +260,52 @@ class EnvmapSpec(_Model):
         return (self.scale,) * 3
 
 
+class SunskySpec(_Model):
+    """The sun and a clear sky of the Hosek-Wilkie model (Mitsuba's ``sunsky``): the sun toward
+    ``sun_direction``, above the horizon of the zenith ``up``, the sky's haze by ``turbidity``,
+    the ground below the sky by its albedo; ``sun_scale`` and ``sky_scale`` multiply either part
+    (Mitsuba's units: the sun's irradiance is about 1.5 at 60 degrees up). The engine takes the
+    sun as a directional light and the sky as an environment map (sunsky.py), volpath the model
+    itself (v1.1)."""
+
+    type: Literal["sunsky"] = "sunsky"
+    sun_direction: Vec3 = Field((0.0, 0.866, 0.5), description="Toward the sun, above the horizon")
+    up: Vec3 = Field((0.0, 1.0, 0.0), description="The zenith (a z-up volume's scene: [0, 0, 1])")
+    turbidity: float = Field(3.0, ge=1.0, le=10.0, description="Haze: 2 arctic, 3 clear, 6 warm, 10 hazy")
+    ground_albedo: float = Field(0.3, ge=0.0, le=1.0, description="The ground's albedo (Mitsuba's 'albedo')")
+    sun_scale: float = Field(1.0, ge=0.0, le=1e6, description="Multiplies the sun's light")
+    sky_scale: float = Field(1.0, ge=0.0, le=1e6, description="Multiplies the sky's light")
+
+    @field_validator("sun_direction", "up")
+    @classmethod
+    def _nonzero(cls, v: Vec3, info) -> Vec3:
+        _finite(v, info.field_name)
+        if _norm(v) < 1e-9:
+            raise ValueError(f"{info.field_name} must be a non-zero vector")
+        return v
+
+    @model_validator(mode="after")
+    def _above(self) -> SunskySpec:
+        if sum(s * u for s, u in zip(self.unit_sun_direction(), self.unit_up(), strict=True)) < 0.0:
+            raise ValueError(
+                f"sun_direction must point above the horizon (of up {list(self.up)}), "
+                f"got {list(self.sun_direction)}"
+            )
+        return self
+
+    def unit_sun_direction(self) -> Vec3:
+        n = _norm(self.sun_direction)
+        return tuple(c / n for c in self.sun_direction)
+
+    def unit_up(self) -> Vec3:
+        n = _norm(self.up)
+        return tuple(c / n for c in self.up)
+
+
 #: Most lights in a scene's ``lights`` (scene spec v1.1).
 MAX_LIGHTS = 8
-Light = Annotated[LightSpec | SkySpec | EnvmapSpec, Field(discriminator="type")]
-LIGHT_TYPES = {"directional": LightSpec, "sky": SkySpec, "envmap": EnvmapSpec}
+Light = Annotated[LightSpec | SkySpec | EnvmapSpec | SunskySpec, Field(discriminator="type")]
+LIGHT_TYPES = {"directional": LightSpec, "sky": SkySpec, "envmap": EnvmapSpec, "sunsky": SunskySpec}
 
 
 def check_light_list(data):
@@ -278,7 +320,7 @@ def check_light_list(data):
     if not isinstance(lights, list | tuple) or not 1 <= len(lights) <= MAX_LIGHTS:
         raise ValueError(f"lights must be a list of 1 to {MAX_LIGHTS} lights, got {_brief(lights)}")
     for i, light in enumerate(lights):
-        if isinstance(light, LightSpec | SkySpec | EnvmapSpec):  # already a checked light
+        if isinstance(light, LightSpec | SkySpec | EnvmapSpec | SunskySpec):  # already a checked light
             continue
         kind = light.get("type") if isinstance(light, dict) else None
         if not isinstance(kind, str) or kind not in LIGHT_TYPES:
@@ -288,7 +330,17 @@ def check_light_list(data):
         except ValidationError as err:
             parts = format_validation_error(err).split("; ")
             raise ValueError("; ".join(f"lights.{i}.{part}" for part in parts)) from None
+    components = sum(2 if _type(light) == "sunsky" else 1 for light in lights)
+    if components > MAX_LIGHTS:
+        raise ValueError(
+            f"lights make at most {MAX_LIGHTS} light components (a sunsky is two: its sun and its "
+            f"sky), got {components}"
+        )
     return data
+
+
+def _type(light) -> str:
+    return light.type if isinstance(light, _Model) else light["type"]
 
 
 def _brief(v) -> str:
@@ -343,7 +395,8 @@ class Scene(_Model):
         None,
         min_length=1,
         max_length=MAX_LIGHTS,
-        description=f"v1.1: up to {MAX_LIGHTS} lights (directional, sky) instead of 'light', never both",
+        description=f"v1.1: up to {MAX_LIGHTS} lights (directional, sky, envmap, sunsky) instead of 'light', "
+        "never both",
     )
     camera: CameraSpec
     render: RenderSpec = RenderSpec()
@@ -361,7 +414,7 @@ class Scene(_Model):
         d.pop("light" if self.lights is not None else "lights", None)
         return d
 
-    def light_list(self) -> tuple[LightSpec | SkySpec, ...]:
+    def light_list(self) -> tuple[LightSpec | SkySpec | EnvmapSpec | SunskySpec, ...]:
         """The scene's lights: ``lights``, or the one ``light`` of a v1 scene."""
         return self.lights if self.lights is not None else (self.light,)
 

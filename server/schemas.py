@@ -63,8 +63,8 @@ class CacheCreate(_Body):
         None,
         min_length=1,
         max_length=MAX_LIGHTS,
-        description="v1.1: the lights (directional, sky) instead of 'light'; their intensities "
-        "are mixed at render time, so any intensities of the same lights are this cache",
+        description="v1.1: the lights (directional, sky, envmap, sunsky) instead of 'light'; their "
+        "intensities are mixed at render time, so any intensities of the same lights are this cache",
     )
     max_depth: int = Field(-1, ge=-1)
     quality: Quality = "default"
@@ -85,6 +85,9 @@ class CacheCreate(_Body):
                 kind["direction"] = list(li.unit_direction())
             if li.type == "envmap":  # an uploaded map's id: the sha256 of its bytes
                 kind["id"] = li.id
+            if li.type == "sunsky":  # its sun's direction and colour, and its sky: not its scales
+                kind.update(sun_direction=list(li.unit_sun_direction()), up=list(li.unit_up()))
+                kind.update(turbidity=li.turbidity, ground_albedo=li.ground_albedo)
         return {"lights": kinds}
 
     def light_part(self) -> dict:

@@ -12,7 +12,16 @@ import math
 
 from fastapi import HTTPException
 
-from cloudgraph.scene import CameraSpec, EnvmapSpec, LightSpec, MediumSpec, Scene, SkySpec, VolumeSpec
+from cloudgraph.scene import (
+    CameraSpec,
+    EnvmapSpec,
+    LightSpec,
+    MediumSpec,
+    Scene,
+    SkySpec,
+    SunskySpec,
+    VolumeSpec,
+)
 from cloudgraph.store import EnvironmentStore, VolumeStore
 from cloudgraph_service.errors import shown
 from cloudgraph_service.settings import Settings
@@ -70,7 +79,7 @@ def check_camera(camera: CameraSpec, settings: Settings, where: str) -> None:
         )
 
 
-def check_light(light: LightSpec | SkySpec | EnvmapSpec, where: str, settings: Settings) -> None:
+def check_light(light: LightSpec | SkySpec | EnvmapSpec | SunskySpec, where: str, settings: Settings) -> None:
     if light.type == "envmap":
         if light.id is None:
             raise InputError(
@@ -87,6 +96,10 @@ def check_light(light: LightSpec | SkySpec | EnvmapSpec, where: str, settings: S
     if light.type == "sky":
         if max(light.intensity_rgb()) > MAX_IRRADIANCE:
             raise InputError(f"{where}.radiance", f"must be at most {MAX_IRRADIANCE:g}")
+        return
+    if light.type == "sunsky":
+        _vec(light.sun_direction, f"{where}.sun_direction", direction=True)
+        _vec(light.up, f"{where}.up", direction=True)
         return
     _vec(light.direction, f"{where}.direction", direction=True)
     if max(light.irradiance_rgb()) > MAX_IRRADIANCE:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import threading
 from collections import OrderedDict
 from functools import lru_cache
@@ -46,6 +47,8 @@ class WorkerState:
         self.settings = settings
         self.volumes = VolumeStore(settings.volumes_dir)
         self.caches = CacheStore(settings.cache_dir)
+        # a sunsky light's sky maps (cloudgraph/sunsky.py) beside the caches, unless set
+        os.environ.setdefault("CLOUDGRAPH_SKY_DIR", str(settings.cache_dir / "skies"))
         self._volumes = LRU(max(2, settings.WORKER_RENDERERS))
         self.renderers = LRU(settings.WORKER_RENDERERS)
 

@@ -17,7 +17,7 @@ LAYERS: list[set[str]] = [
     {"cloudgraph", "integrators", "errors", "options", "files", "chunks", "graph", "transport", "heap"},
     # the scene spec, images and metrics, the VDB header, the graph file's format
     {"vdb", "scene", "image", "metrics", "graph_file", "light_depth"},
-    {"volume"},
+    {"volume", "sunsky"},  # volumes; a sunsky light's sun and sky map (from Mitsuba's model)
     # walks of the medium, Mitsuba scenes, parameters, the volume store, test volumes, lights
     {"tracing", "mitsuba_scene", "params", "store", "procedural", "lights"},
     # nodes, direct light, the spatial index, the field's file, cache keys and store, phase walks

@@ -27,7 +27,7 @@ from ..helpers import (
 )
 
 BASE = {"volume": {"path": "cloud.vdb"}, "camera": {"eye": [0, 0, 5], "target": [0, 0, 0]}}
-TYPES = "type must be one of directional, sky, envmap, got "
+TYPES = "type must be one of directional, sky, envmap, sunsky, got "
 SUN = {"type": "directional", "direction": [-0.6, -0.7, -0.3], "irradiance": [1.0, 0.9, 0.8]}
 SUN2 = {"type": "directional", "direction": [0.5, -0.3, -0.8], "irradiance": 0.7}
 SKY = {"type": "sky", "radiance": [0.2, 0.3, 0.5]}

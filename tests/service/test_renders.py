@@ -148,11 +148,40 @@ def test_a_scene_of_lights_renders_and_new_intensities_are_the_same_cache(client
     assert mean(scene["lights"]) > sky  # and the sun adds to it
 
 
+def test_a_sunsky_renders_and_its_scales_are_the_same_cache(client, fog):
+    # scene spec v1.1: the model's sun and sky; new scales re-mix the cache, a new haze is another
+    scene = fog_scene(fog, width=24, spp=1)
+    scene.pop("light")
+    sunsky = {"type": "sunsky", "sun_direction": [1, 1, 0], "turbidity": 3}
+    body = {k: scene[k] for k in ("volume", "medium")} | {"lights": [sunsky], "quality": "draft"}
+    r = client.post("/v1/caches", json=body)
+    assert r.status_code in (200, 202), r.text
+    assert wait_job(client, f"cache-{r.json()['id']}")["status"] == "finished"
+    rescaled = {**body, "lights": [{**sunsky, "sun_scale": 2.0, "sky_scale": 0.5}]}
+    assert client.post("/v1/caches", json=rescaled).json()["id"] == r.json()["id"]
+    hazy = {**body, "lights": [{**sunsky, "turbidity": 6}]}
+    assert client.post("/v1/caches", json=hazy).json()["id"] != r.json()["id"]
+
+    def mean(light) -> float:
+        req = {"scene": {**scene, "lights": [light]}, "quality": "draft", "estimator": "field"}
+        img = client.post("/v1/renders", json=req)
+        assert img.status_code == 200, img.text
+        return client.get(f"/v1/jobs/{img.headers['x-job-id']}").json()["result"]["mean"]
+
+    # linear in each part's scale: the sky alone doubled doubles its image, and the sun adds
+    sky = mean({**sunsky, "sun_scale": 0.0})
+    assert sky > 0 and abs(mean({**sunsky, "sun_scale": 0.0, "sky_scale": 2.0}) / sky - 2) < 1e-3
+    assert mean(sunsky) > 1.2 * sky
+
+
 @pytest.mark.parametrize(
     "lights, words",
     [
         ([{"type": "sky", "radiance": -1}], "lights.0.radiance: must be a non-negative number"),
-        ([{"type": "sun"}], "lights.0.type must be one of directional, sky, envmap, got 'sun'"),
+        ([{"type": "sun"}], "lights.0.type must be one of directional, sky, envmap, sunsky, got 'sun'"),
+        ([{"type": "sunsky", "turbidity": 12}], "lights.0.turbidity: Input should be less than or equal"),
+        ([{"type": "sunsky", "sun_direction": [1, -1, 0]}], "lights.0.sun_direction must point above"),
+        ([{"type": "sunsky", "sun_direction": [0, 2e6, 0]}], "scene.lights.0.sun_direction"),
         ([{"type": "sky", "radiance": 2e6}], "scene.lights.0.radiance: must be at most"),
         ([{"type": "directional", "direction": [0, 2e6, 0]}], "scene.lights.0.direction"),
         ([{"type": "envmap", "path": "/etc/passwd"}], "scene.lights.0.path: the HTTP API takes an uploaded"),
