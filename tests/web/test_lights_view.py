@@ -172,7 +172,11 @@ def test_intensities_and_limits_in_words(page):  # noqa: F811
         return { units, all, one, two: two16, eight,
                  mixed: lightsOf(field, { suns: [[1, 2, 3]], sky: [4, 5, 6] }),
                  none: lightsOf(field, null),
-                 v1: lightsOf({ unit: false, irradiance: [2, 2, 2] }, { suns: [[9, 9, 9]] }) };
+                 v1: lightsOf({ unit: false, irradiance: [2, 2, 2] }, { suns: [[9, 9, 9]] }),
+                 // a sunsky's sun: the field keeps its colour (base), the mix its sun_scale
+                 based: lightsOf({ unit: true, suns: [{ base: [1.5, 1.25, 1] }],
+                   components: [{ type: 'directional' }, { type: 'envmap' }] },
+                   { suns: [[2, 2, 2]], envmaps: [[0.5, 0.5, 0.5]] }) };
       }"""
     )
     assert r["all"] == ["", "", ""] and r["units"] >= 21
@@ -191,3 +195,5 @@ def test_intensities_and_limits_in_words(page):  # noqa: F811
         "sky": [0, 0, 0],
     }
     assert r["v1"] == {"suns": [[2, 2, 2]], "components": [[1, 1, 1]], "sky": [0, 0, 0]}
+    based = {"suns": [[3, 2.5, 2]], "components": [[3, 2.5, 2], [0.5, 0.5, 0.5]], "sky": [0, 0, 0]}
+    assert r["based"] == based

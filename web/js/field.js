@@ -155,11 +155,13 @@ export function decodeField(buffer) {
     unit: !!header.lights,
     // the directional lights: { direction (the way light travels), tau: its tau array's name,
     // shape: null or { array, frame: 9 numbers, rows e_x, e_y, e_z (e_z toward the light),
-    // lightPower: the grey P of the light factor its terms are kept over (0: none) } }
+    // lightPower: the grey P of the light factor its terms are kept over (0: none) }, base: its
+    // colour at scale 1 that the mix multiplies (1, or a sunsky's sun's: the model's) }
     suns: lights.suns.map((s) => ({
       direction: vec(s.direction, 3, "light.direction"),
       tau: s.tau,
       shape: s.shape ? shapeEntry(s.shape) : null,
+      base: s.base,
     })),
     // every light component in the header's order: { type, ms: its radiance array's name,
     // background: an environment map's lat-long background array's name, else null }
@@ -224,9 +226,12 @@ function lightComponents(list) {
   }
   for (const s of suns) {
     if (s.shape && typeof s.shape.array !== "string") throw new FieldError("a directional light's shape names no array");
+    const rgb = (b) => Array.isArray(b) && b.length === 3 && b.every((v) => Number.isFinite(v) && v >= 0);
+    if (s.base !== undefined && !rgb(s.base)) throw new FieldError("a directional light's base is not an RGB colour");
   }
   return {
-    suns: suns.map((s) => ({ direction: s.direction, tau: s.tau, shape: s.shape || null })),
+    // base: a sunsky's sun's colour at its sun_scale 1, which the mix scales (api.md)
+    suns: suns.map((s) => ({ direction: s.direction, tau: s.tau, shape: s.shape || null, base: s.base || [1, 1, 1] })),
     components: list.map((c) => ({ type: c.type, ms: c.ms, background: c.background || null })),
     irradiance: null,
   };

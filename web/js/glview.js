@@ -44,12 +44,13 @@ export function cameraBasis(cam) {
  * component (field.components) the intensity its arrays are scaled by, sky: the sky's radiance
  * seen behind the medium }. A v1 field is in its own light; a v1.1 one (unit components) in
  * ``mix`` ({ suns: [[3] per directional light], sky: [3], envmaps: [[3] scale per map] }; none
- * given: each sun and map 1, no sky; a sun or map past the mix's list is off).
+ * given: each sun and map 1, no sky; a sun or map past the mix's list is off), each sun's times
+ * its ``base`` (a sunsky's sun: the model's colour, the mix its sun_scale).
  */
 export function lightsOf(field, mix) {
   if (!field.unit) return { suns: [field.irradiance], components: [[1, 1, 1]], sky: [0, 0, 0] };
   const nth = (list, i) => (mix ? (list && list[i]) || [0, 0, 0] : [1, 1, 1]);
-  const sunE = field.suns.map((_, i) => nth(mix && mix.suns, i));
+  const sunE = field.suns.map((s, i) => nth(mix && mix.suns, i).map((e, c) => e * (s.base ? s.base[c] : 1)));
   const sky = (mix && mix.sky) || [0, 0, 0];
   let sun = 0;
   let map = 0;

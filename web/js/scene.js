@@ -5,7 +5,7 @@
 
 import { $, $$, formatBytes, h, readNumber, setText } from "./dom.js";
 import { AXES } from "./camera.js";
-import { LightWidget, lightDirection } from "./lightwidget.js";
+import { LightWidget, lightDirection, towardsLight } from "./lightwidget.js";
 
 /** density_scale that gives the densest voxel an optical depth of 1. */
 export function defaultDensityScale(info) {
@@ -46,6 +46,11 @@ export function tinted(hex, scale) {
   return linear.map((v) => Number((scale * v).toPrecision(4)));
 }
 
+/** The light components a scene light makes: a sunsky two (its sun and its sky), others one. */
+export function componentCount(lights) {
+  return lights.reduce((n, l) => n + (l.type === "sunsky" ? 2 : 1), 0);
+}
+
 /** A directional light of the spec from azimuth and elevation (degrees), an irradiance input
  * and a colour input: a scalar irradiance for white, else RGB. ``n``: its number in words. */
 function sunSpec(az, el, irradianceInput, colourInput, axes, n = 1) {
@@ -79,6 +84,9 @@ export class ScenePanel {
     this.sunColour = $("#sun-colour");
     this.sky = $("#sky");
     this.skyColour = $("#sky-colour");
+    this.sunsky = $("#sunsky");
+    this.turbidity = $("#turbidity");
+    this.skyScale = $("#sky-scale");
     this.envSelect = $("#env-select");
     this.envScale = $("#env-scale");
     this.envFile = $("#env-file");
@@ -116,7 +124,7 @@ export class ScenePanel {
       this.density.value = defaultDensityScale(info);
       this.onChange();
     });
-    for (const input of [this.density, this.albedo, this.irradiance, this.quality, this.sky]) {
+    for (const input of [this.density, this.albedo, this.irradiance, this.quality, this.sky, this.sunsky, this.turbidity, this.skyScale]) {
       input.addEventListener("change", () => this.onChange());
     }
     // colours re-mix the view as they are picked (no request when the cache holds the lights
@@ -263,7 +271,19 @@ export class ScenePanel {
     };
     const phase = readPhase(this.phase);
     if (phase) medium.phase = phase;
-    const suns = [sunSpec(az, el, this.irradiance, this.sunColour, this.axes())];
+    // the first sun: a directional light, or with "Sun & sky" the model's sun and sky
+    const first = this.sunsky.checked
+      ? {
+          type: "sunsky",
+          sun_direction: towardsLight(az, el, this.axes()).map((v) => Math.round(v * 1e5) / 1e5 + 0),
+          up: this.axes().up,
+          turbidity: readNumber(this.turbidity, { min: 1, max: 10 }),
+          sun_scale: readNumber(this.irradiance, { min: 0 }),
+          sky_scale: readNumber(this.skyScale, { min: 0 }),
+        }
+      : sunSpec(az, el, this.irradiance, this.sunColour, this.axes());
+    if (first.type === "sunsky" && el < 0) throw new Error("light elevation: the model's sun must be above the horizon (0° or more)");
+    const suns = [first];
     this.extraSuns().forEach((row, i) => {
       const n = i + 2;
       const [azIn, elIn, eIn, colour] = $$("input", row);
@@ -272,25 +292,31 @@ export class ScenePanel {
     const sky = readNumber(this.sky, { min: 0 });
     const all = sky > 0 ? [...suns, { type: "sky", radiance: tinted(this.skyColour.value, sky) }] : [...suns];
     if (this.envSelect.value) all.push({ type: "envmap", id: this.envSelect.value, scale: readNumber(this.envScale, { min: 0 }) });
-    if (all.length > MAX_LIGHTS) throw new Error(`lights: at most ${MAX_LIGHTS} in all (remove a sun, the sky or the map)`);
-    // One sun alone: a v1 scene's one light; more lights: v1.1's lights (the cache holds them
-    // apart, so their intensities are not part of it: key())
-    const lightPart = all.length > 1 ? { lights: all } : { light: suns[0] };
+    if (componentCount(all) > MAX_LIGHTS) {
+      throw new Error(`lights: at most ${MAX_LIGHTS} in all, Sun & sky counting 2 (remove a sun, the sky or the map)`);
+    }
+    // One sun alone: a v1 scene's one light; more lights (or the model's sun and sky): v1.1's
+    // lights (the cache holds them apart, so their intensities are not part of it: key())
+    const lightPart = all.length > 1 || first.type === "sunsky" ? { lights: all } : { light: suns[0] };
     return { volume: { id: info.id }, medium, ...lightPart, lightPart, quality: this.quality.value };
   }
 
   /** The lights' intensities, for the real-time view's mix: { suns: [[3] per sun], sky: [3],
-   * envmaps: [[3] scale per map] }. */
+   * envmaps: [[3] scale per map] }, in the order of the field's components (cloudgraph/
+   * lights.py): a sunsky is a sun (its sun_scale: the field keeps the model's colour, its
+   * ``base``) and a map (its sky_scale), each in its place among its kind. */
   mix() {
     try {
       const v = this.values();
       const lights = v.lights || [v.light];
       const rgb = (e) => (Array.isArray(e) ? e : [e, e, e]);
       const sky = lights.find((l) => l.type === "sky");
+      const sunOf = (l) => rgb(l.type === "sunsky" ? l.sun_scale : l.irradiance);
+      const mapOf = (l) => rgb(l.type === "sunsky" ? l.sky_scale : l.scale);
       return {
-        suns: lights.filter((l) => l.type === "directional").map((l) => rgb(l.irradiance)),
+        suns: lights.filter((l) => l.type === "directional" || l.type === "sunsky").map(sunOf),
         sky: sky ? sky.radiance : [0, 0, 0],
-        envmaps: lights.filter((l) => l.type === "envmap").map((l) => rgb(l.scale)),
+        envmaps: lights.filter((l) => l.type === "envmap" || l.type === "sunsky").map(mapOf),
       };
     } catch {
       return null;
@@ -359,7 +385,11 @@ export class ScenePanel {
   key() {
     try {
       const v = this.values();
-      const light = v.lights ? v.lights.map((l) => ({ type: l.type, direction: l.direction, id: l.id })) : v.light;
+      const kind = (l) =>
+        l.type === "sunsky"
+          ? { type: l.type, sun_direction: l.sun_direction, up: l.up, turbidity: l.turbidity }
+          : { type: l.type, direction: l.direction, id: l.id };
+      const light = v.lights ? v.lights.map(kind) : v.light;
       return JSON.stringify([v.volume, v.medium, light, v.quality]);
     } catch {
       return null;
