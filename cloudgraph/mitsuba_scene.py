@@ -120,17 +120,24 @@ def scene_dict(scene: Scene, volume: Volume, integrator: dict | None = None) -> 
     if integrator is None:
         integrator = volpath_dict(scene.render.max_depth)
     lights = scene.light_list()
+    sensor = sensor_dict(scene.camera, volume, scene.render.spp, scene.render.seed)
+    lo, hi = volume.world_bbox()
+    if np.all((np.asarray(scene.camera.eye) > lo) & (np.asarray(scene.camera.eye) < hi)):
+        # a camera inside the medium's box starts in the medium (Mitsuba's rays start in the
+        # sensor's medium: none, unless given, and then cross the box's faces as if from outside)
+        sensor["medium"] = {"type": "ref", "id": "cloud"}
     return {
         "type": "scene",
         "integrator": integrator,
-        "sensor": sensor_dict(scene.camera, volume, scene.render.spp, scene.render.seed),
+        "cloud": medium_dict(volume, scene),
+        "sensor": sensor,
         # (a v1 scene's one light keeps its name: "light")
         **{"light" if i == 0 else f"light_{i}": emitter for i, emitter in enumerate(emitter_dicts(lights))},
         "medium_box": {
             "type": "cube",
             "to_world": mi.ScalarTransform4f(box_to_world(volume).tolist()),
             "bsdf": {"type": "null"},
-            "interior": medium_dict(volume, scene),
+            "interior": {"type": "ref", "id": "cloud"},
         },
     }
 

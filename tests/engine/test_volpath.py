@@ -144,3 +144,24 @@ def test_real_clouds_render_finite_and_inside_their_bbox(variant, data_dir, name
     image = render_volpath(scene, volume)
     assert np.isfinite(image).all() and image.mean() > 1e-4
     assert image[0, 0].sum() == 0 and image[-1, -1].sum() == 0  # corners see past the cloud
+
+
+def test_a_camera_inside_the_medium_sees_through_it(variant):
+    # The camera inside the cube [-1, 1]^3 of a pure absorber (sigma_t 1.2, albedo 0) under a
+    # uniform sky of radiance 1: each pixel is exp(-sigma t_exit). Mitsuba's rays start in the
+    # sensor's medium, none unless the scene gives it: without it they read 1, unattenuated.
+    sigma = 1.2
+    cam = {"eye": [0.2, 0.1, -0.3], "target": [0.5, 0.3, 1.0], "fov": 70, "width": 24, "height": 20}
+    scene = scene_for(
+        cam,
+        medium={"density_scale": 1.0, "albedo": 0.0},
+        lights=[{"type": "sky", "radiance": 1.0}],
+        render={"spp": 1024, "seed": 1},
+    )
+    image = render_volpath(scene, cube_volume(sigma))[..., 0].astype(np.float64)  # (delta tracking)
+    d = pixel_rays(cam["eye"], cam["target"], [0, 1, 0], cam["fov"], cam["width"], cam["height"])
+    _, t1 = box_interval(np.array(cam["eye"]), d, [-1, -1, -1], [1, 1, 1])
+    expected = np.exp(-sigma * t1)
+    assert expected.max() < 0.5  # every ray crosses more than half an optical depth
+    assert abs(image.mean() / expected.mean() - 1) < 0.01, (image.mean(), expected.mean())
+    np.testing.assert_allclose(image, expected, atol=0.07)  # 5 sigma of 1024 draws of 0 or 1
