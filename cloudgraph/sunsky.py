@@ -92,7 +92,8 @@ def _sun_irradiance(direction, up, turbidity, ground_albedo, variant) -> tuple:
     sampler = mi.load_dict({"type": "independent"})
     sampler.seed(0, n)
     _, weight = emitter.sample_direction(dr.zeros(mi.Interaction3f, n), sampler.next_2d(), mi.Bool(True))
-    return tuple(float(c) for c in np.array(weight, np.float64).reshape(3, n).mean(axis=1))
+    # (at the horizon the model's sun may read a hair below 0 in a channel)
+    return tuple(max(0.0, float(c)) for c in np.array(weight, np.float64).reshape(3, n).mean(axis=1))
 
 
 def sky_map(spec: SunskySpec, width: int = SKY_WIDTH) -> np.ndarray:

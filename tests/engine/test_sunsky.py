@@ -121,6 +121,9 @@ def test_the_sun_is_its_disks_radiance_times_its_solid_angle(variant):
     assert np.allclose(E, L * solid_angle, rtol=0.01), (E, L * solid_angle)
     low = sun_irradiance(spec.model_copy(update={"sun_direction": (0.3, 0.1, 0.5)}))
     assert (low < E).all() and low[2] / low[0] < E[2] / E[0]  # lower: dimmer and redder
+    # at the horizon the model's sun is gone (and never below 0: a light's irradiance)
+    grazing = sun_irradiance(spec.model_copy(update={"sun_direction": (1.0, 1e-6, 0.0), "turbidity": 10.0}))
+    assert (grazing >= 0).all() and grazing.max() < 1e-4
 
 
 def test_the_keys_hold_the_sun_and_sky_not_their_scales(variant):
