@@ -20,12 +20,17 @@ from .page import (
     wait_relit,
     wait_rest,
 )
-from .test_web_3_compare_relight import MAX_FIELD_REL_MAE
 from .test_web_3b_sky import change, corners
 from .test_web_3d_lights import cloud_mean
 
 #: The one light's field key before (the last step brings it back).
 BEFORE = {}
+#: The real-time view against the server's `field` render here: 1 % (the issue's bound), not
+#: MAX_FIELD_REL_MAE. The model's sky steps to black at the horizon, and the page reads that
+#: step from the field's background (the map resampled at 512 x 256, read bilinearly) where the
+#: server reads the map: the pixels on the horizon differ (measured 0.58 %, mean ratio 1.000;
+#: the cloud itself as closely as in the other steps).
+MAX_SKY_REL_MAE = 0.01
 
 
 def test_the_model_s_sun_and_sky_relight_then_are_drawn_like_the_server(page):
@@ -37,7 +42,7 @@ def test_the_model_s_sun_and_sky_relight_then_are_drawn_like_the_server(page):
     sky = corners(shown_pixels(page))
     assert dark < 20 and sky > dark + 20, (dark, sky)  # black behind the cloud before, the sky now
     shot(page, "08l-sun-and-sky")
-    assert_realtime_is_the_server_field(page, "the model's sun and sky", MAX_FIELD_REL_MAE)
+    assert_realtime_is_the_server_field(page, "the model's sun and sky", MAX_SKY_REL_MAE)
 
 
 def test_the_model_s_sun_and_sky_scales_re_mix_with_no_request(page):
@@ -61,7 +66,7 @@ def test_the_model_s_sun_and_sky_scales_re_mix_with_no_request(page):
     assert errors_shown(page) == []
     shot(page, "08m-sun-and-sky-re-mixed")
     # the server's field in the new mix (the same cache, other scales) is the page's
-    assert_realtime_is_the_server_field(page, "the model's sky alone", MAX_FIELD_REL_MAE)
+    assert_realtime_is_the_server_field(page, "the model's sky alone", MAX_SKY_REL_MAE)
 
 
 def test_the_model_off_brings_back_the_one_light(page):
