@@ -208,6 +208,15 @@ def wait_relit(page, old_key: str) -> None:
     wait_rest(page, frames_drawn(page) - 1)
 
 
+def wait_field_key(page, key: str) -> None:
+    """Waits for the field of radiance key ``key`` (one the page had before: found, not made)
+    to be downloaded again and drawn at rest."""
+    page.wait_for_function(
+        f"() => document.querySelector('#viewport').dataset.fieldKey === '{key}'", timeout=120_000
+    )
+    wait_rest(page, frames_drawn(page) - 1)
+
+
 @contextlib.contextmanager
 def api_requests(page):
     """The URLs of the API requests (/v1/) the page makes inside the block, in a list."""

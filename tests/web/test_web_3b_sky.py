@@ -14,6 +14,7 @@ from .page import (
     reset_view,
     shot,
     shown_pixels,
+    wait_field_key,
     wait_rest,
 )
 from .test_web_3_compare_relight import MAX_FIELD_REL_MAE
@@ -72,9 +73,6 @@ def test_the_sky_off_brings_back_the_one_light(page):
     change(page, "#irradiance", "1")
     change(page, "#sky", "0")
     # the one light's cache is ready: its field is downloaded again and drawn
-    page.wait_for_function(
-        f"() => document.querySelector('#viewport').dataset.fieldKey === '{BEFORE['key']}'", timeout=120_000
-    )
-    wait_rest(page, frames_drawn(page) - 1)
+    wait_field_key(page, BEFORE["key"])
     assert corners(shown_pixels(page)) < 20
     assert errors_shown(page) == []

@@ -12,6 +12,7 @@ from .page import (
     errors_shown,
     frames_drawn,
     shot,
+    wait_field_key,
     wait_rest,
 )
 from .test_web_3_compare_relight import MAX_FIELD_REL_MAE
@@ -50,8 +51,5 @@ def test_the_forward_scattering_view_holds_its_frame_rate_while_orbiting(page):
 def test_the_isotropic_phase_brings_back_its_cache(page):
     page.select_option("#phase-type", "isotropic")
     page.dispatch_event("#phase-type", "change")
-    page.wait_for_function(
-        f"() => document.querySelector('#viewport').dataset.fieldKey === '{BEFORE['key']}'", timeout=120_000
-    )
-    wait_rest(page, frames_drawn(page) - 1)
+    wait_field_key(page, BEFORE["key"])
     assert errors_shown(page) == []

@@ -18,6 +18,7 @@ from .page import (
     reset_view,
     shot,
     shown_pixels,
+    wait_field_key,
     wait_relit,
     wait_rest,
 )
@@ -111,10 +112,7 @@ def test_removing_the_sun_the_sky_and_the_map_brings_back_the_one_light(page):
     change(page, "#env-scale", "1")
     page.select_option("#env-select", "")
     change(page, "#sky", "0")
-    page.wait_for_function(
-        f"() => document.querySelector('#viewport').dataset.fieldKey === '{BEFORE['key']}'", timeout=120_000
-    )
-    wait_rest(page, frames_drawn(page) - 1)
+    wait_field_key(page, BEFORE["key"])
     assert page.eval_on_selector_all("#sun-list .sun-row", "rows => rows.length") == 0
     assert corners(shown_pixels(page)) < 20  # no sky behind the cloud
     assert errors_shown(page) == []

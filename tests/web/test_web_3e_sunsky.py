@@ -17,6 +17,7 @@ from .page import (
     reset_view,
     shot,
     shown_pixels,
+    wait_field_key,
     wait_relit,
     wait_rest,
 )
@@ -73,9 +74,6 @@ def test_the_model_off_brings_back_the_one_light(page):
     change(page, "#irradiance", "1")
     change(page, "#sky-scale", "1")
     page.uncheck("#sunsky")
-    page.wait_for_function(
-        f"() => document.querySelector('#viewport').dataset.fieldKey === '{BEFORE['key']}'", timeout=120_000
-    )
-    wait_rest(page, frames_drawn(page) - 1)
+    wait_field_key(page, BEFORE["key"])
     assert corners(shown_pixels(page)) < 20  # no sky behind the cloud
     assert errors_shown(page) == []
