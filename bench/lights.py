@@ -7,7 +7,8 @@ reference over 2 % from the bare sky), the relight (a new light list on the grap
 against the first precompute, the relight that adds one more sun to the setup's cache, and a
 re-mix (new intensities of the same lights: set_lights and a field frame). Rows are printed and
 written as they finish (bench/results/lights-<date>.json and .md). ``--timing`` leaves out the
-references and the renders: the precompute times only.
+references and the renders: the precompute times only; ``--remix`` the re-mixes only (the median
+of REMIXES, alternating two intensity sets on a warm renderer).
 
     .venv/bin/python -m bench.lights --scenes sphere noise holdout --ref-spp 4096
 """
@@ -49,6 +50,10 @@ SETUPS = {
 }
 
 
+#: Re-mixes timed per row: remix_ms is their median, remix_max_ms the slowest.
+REMIXES = 7
+
+
 #: The sun that add_sun_s adds to a setup's lights.
 EXTRA_SUN = {"type": "directional", "direction": [0.3, -0.9, 0.3], "irradiance": 0.5}
 
@@ -83,6 +88,7 @@ COLUMNS = [
     "relight_s",
     "add_sun_s",
     "remix_ms",
+    "remix_max_ms",
     "field_MB",
 ]
 
@@ -116,6 +122,7 @@ def run(
     quality: str,
     out_dir: Path,
     timing=False,
+    remix_only=False,
 ):
     store = CacheStore(out_dir.parent / "cache-lights")
     ref_dir = out_dir.parent / "reference-cache"
@@ -147,32 +154,44 @@ def run(
                     continue
                 for cam_name, camera in cameras(bs.volume, LIGHT, size).items():
                     scene = with_lights(_scene(bs, camera, albedo, gather_spp, seed=0), SETUPS[setup], envmap)
-                    ref = reference(bs, scene, ref_spp, ref_dir)
                     lights = Lights.of(scene)
-                    mask = cloud_bins(ref, lights.sky_radiance)
                     r = GraphRenderer(cache, bs.volume, scene)
-                    gather = r.render(scene.camera, gather_spp, 1, "gather")
-                    field = r.render(scene.camera, 16, 1, "field")
                     row = {"scene": bs.name, "lights": setup, "camera": cam_name, "albedo": albedo}
-                    for name, image in (("gather", gather), ("field", field)):
-                        m = bias_metrics(image, ref)
-                        row[f"{name}_mean"] = m["mean_ratio"]
-                        row[f"{name}_binned_pct"] = 100 * m["binned_relMAE"]
-                        row[f"{name}_cloud_pct"] = cloud_pct(image, ref, mask)
-                    row["field_vs_gather_pct"] = 100 * bias_metrics(field, gather)["binned_relMAE"]
-                    # a re-mix: other intensities of the same lights, one 16-spp field frame
-                    dimmer = dataclasses.replace(lights, intensity=0.5 * lights.intensity)
-                    r.render(scene.camera, 16, 1, "field", dimmer)  # (kernels warm)
-                    t0 = time.perf_counter()
-                    r.render(scene.camera, 16, 1, "field", lights)
-                    row["remix_ms"] = round(1000 * (time.perf_counter() - t0), 1)
+                    if not remix_only:
+                        ref = reference(bs, scene, ref_spp, ref_dir)
+                        mask = cloud_bins(ref, lights.sky_radiance)
+                        gather = r.render(scene.camera, gather_spp, 1, "gather")
+                        field = r.render(scene.camera, 16, 1, "field")
+                        for name, image in (("gather", gather), ("field", field)):
+                            m = bias_metrics(image, ref)
+                            row[f"{name}_mean"] = m["mean_ratio"]
+                            row[f"{name}_binned_pct"] = 100 * m["binned_relMAE"]
+                            row[f"{name}_cloud_pct"] = cloud_pct(image, ref, mask)
+                        row["field_vs_gather_pct"] = 100 * bias_metrics(field, gather)["binned_relMAE"]
+                    row.update(remix_times(r, scene.camera, lights))
                     row.update(
-                        ref_spp=ref_spp, **times, field_MB=round(cache.stats["field_bytes"] / 2**20, 2)
+                        ref_spp=None if remix_only else ref_spp,
+                        **times,
+                        field_MB=round(cache.stats["field_bytes"] / 2**20, 2),
                     )
                     rows.append(row)
                     print(row_md(row, COLUMNS), flush=True)
                     _write(stem, rows, ref_spp, gather_spp, size, quality)
     return rows
+
+
+def remix_times(r: GraphRenderer, camera, lights: Lights) -> dict:
+    """A re-mix: other intensities of the same lights and one 16-spp field frame, REMIXES times
+    on a warm renderer, alternating the lights' own intensities and half of them (each is a
+    change: set_lights re-mixes only what changed)."""
+    dimmer = dataclasses.replace(lights, intensity=0.5 * lights.intensity)
+    r.render(camera, 16, 1, "field", dimmer)  # (kernels warm)
+    times = []
+    for k in range(REMIXES):
+        t0 = time.perf_counter()
+        r.render(camera, 16, 1, "field", lights if k % 2 == 0 else dimmer)
+        times.append(1000 * (time.perf_counter() - t0))
+    return {"remix_ms": round(float(np.median(times)), 1), "remix_max_ms": round(max(times), 1)}
 
 
 def _write(stem: Path, rows, ref_spp, gather_spp, size, quality) -> None:
@@ -181,7 +200,8 @@ def _write(stem: Path, rows, ref_spp, gather_spp, size, quality) -> None:
         "over the bins where the cloud shows (reference over 2 % from the bare sky; sun+envmap: every bin); "
         "pre_s: the first precompute (graph and the sun alone); relight_s: the setup's precompute on that "
         "graph; add_sun_s: the setup's lights and one more sun, on the setup's cache; remix_ms: new "
-        "intensities and a 16-spp field frame."
+        f"intensities and a 16-spp field frame, median of {REMIXES} on a warm renderer "
+        "(remix_max_ms the slowest)."
     )
     reference = "Mitsuba's directional, constant and envmap emitters"
     settings = {"quality": quality, "size": size, "gather_spp": gather_spp, "ref_spp": ref_spp}
@@ -195,9 +215,21 @@ def main(argv=None) -> None:
     add_accuracy_args(p, ["sphere", "noise", "holdout"])
     p.add_argument("--setups", nargs="*", default=list(SETUPS), choices=list(SETUPS))
     p.add_argument("--timing", action="store_true", help="precompute times only: no references, no renders")
+    p.add_argument("--remix", action="store_true", help="re-mix times only: no references, no gather")
     a = p.parse_args(argv)
     set_variant()
-    run(a.scenes, a.albedo, a.setups, a.ref_spp, a.gather_spp, a.size, a.quality, Path(a.out), a.timing)
+    run(
+        a.scenes,
+        a.albedo,
+        a.setups,
+        a.ref_spp,
+        a.gather_spp,
+        a.size,
+        a.quality,
+        Path(a.out),
+        a.timing,
+        a.remix,
+    )
 
 
 if __name__ == "__main__":

@@ -1,7 +1,12 @@
 """Load benchmark of the service (issue 4 targets): warm-cache 256^2 graph renders over HTTP,
 and /healthz latency while the worker is saturated. Starts its own real service.
 
+``--remix``: re-mixes over HTTP instead, a sun and a sky whose intensities change from request
+to request (the same cache: no precompute), one camera, ``field`` renders of ``--size``: each
+request's round trip and the worker's render time (X-Render-Seconds).
+
     .venv/bin/python bench/load_service.py [--volume ../shared/data/smoke1.vdb] [--quality default]
+    .venv/bin/python bench/load_service.py --remix --size 64
 """
 
 from __future__ import annotations
@@ -27,6 +32,8 @@ def main() -> None:
     ap.add_argument("--quality", default="default")
     ap.add_argument("--renders", type=int, default=20)
     ap.add_argument("--spp", type=int, default=16)
+    ap.add_argument("--remix", action="store_true", help="re-mixes of a sun and a sky, field renders")
+    ap.add_argument("--size", type=int, default=256)
     args = ap.parse_args()
     svc = start_service(Path("/tmp/cloudgraph-load"), workers=1)
     try:
@@ -40,15 +47,37 @@ def main() -> None:
 
             def body(i: int) -> dict:
                 eye = [centre[0] + 2 * size * (1 - i / 100), centre[1], centre[2] + 2 * size * (i / 100)]
+                light = {"light": {"direction": [0.55, -0.25, -0.8]}}
+                extra = {}
+                if args.remix:  # one camera; the sun's and the sky's intensities change
+                    eye = [centre[0] + 2 * size, centre[1], centre[2]]
+                    light = {
+                        "lights": [
+                            {
+                                "type": "directional",
+                                "direction": [0.55, -0.25, -0.8],
+                                "irradiance": 1 + 0.1 * i,
+                            },
+                            {"type": "sky", "radiance": [0.25, 0.35, 0.55 / (1 + 0.1 * i)]},
+                        ]
+                    }
+                    extra = {"integrator": "graph", "estimator": "field"}
                 return {
                     "scene": {
                         "volume": {"id": info["id"]},
                         "medium": {"density_scale": ds},
-                        "light": {"direction": [0.55, -0.25, -0.8]},
-                        "camera": {"eye": eye, "target": centre, "fov": 40, "width": 256, "height": 256},
-                        "render": {"spp": args.spp, "seed": i},
+                        **light,
+                        "camera": {
+                            "eye": eye,
+                            "target": centre,
+                            "fov": 40,
+                            "width": args.size,
+                            "height": args.size,
+                        },
+                        "render": {"spp": args.spp, "seed": 0 if args.remix else i},
                     },
                     "quality": args.quality,
+                    **extra,
                 }
 
             t0 = time.perf_counter()
@@ -60,7 +89,7 @@ def main() -> None:
                     break
             first = time.perf_counter() - t0
             c.post("/v1/renders", json=body(1))  # compile once at this size
-            lat, health, stop = [], [], threading.Event()
+            lat, render_s, health, stop = [], [], [], threading.Event()
 
             def poll_health():
                 with svc.client() as h:
@@ -75,6 +104,7 @@ def main() -> None:
                 r = c.post("/v1/renders", json=body(i))
                 assert r.status_code == 200, r.text
                 lat.append(time.perf_counter() - t)
+                render_s.append(float(r.headers["X-Render-Seconds"]))
             stop.set()
             th.join()
         from cloudgraph.mitsuba_scene import set_variant
@@ -85,16 +115,21 @@ def main() -> None:
             "volume": Path(args.volume).name,
             "quality": args.quality,
             "spp": args.spp,
+            "size": args.size,
+            "remix": args.remix,
             "first_request_s": round(first, 2),
             "renders": len(lat),
             "median_s": round(statistics.median(lat), 3),
             "p90_s": round(sorted(lat)[int(0.9 * len(lat))], 3),
+            "render_median_s": round(statistics.median(render_s), 4),
+            "render_max_s": round(max(render_s), 4),
             "healthz_median_ms": round(1000 * statistics.median(health), 1),
             "healthz_max_ms": round(1000 * max(health), 1),
             "healthz_requests": len(health),
         }
         print(json.dumps(result, indent=2))
-        out = ROOT / "bench" / "results" / f"load-{time.strftime('%Y%m%d-%H%M%S')}.json"
+        kind = "remix" if args.remix else "load"
+        out = ROOT / "bench" / "results" / f"{kind}-{time.strftime('%Y%m%d-%H%M%S')}.json"
         out.write_text(json.dumps(result, indent=2))
     finally:
         svc.stop()
