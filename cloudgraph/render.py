@@ -8,6 +8,7 @@ from __future__ import annotations
 import mitsuba as mi
 import numpy as np
 
+from .edges import REFINE_SIDE, edge_pixels, refine_lanes, refined, strata_positions
 from .errors import SceneError
 from .graph import gradient_operators, node_gradients
 from .lights import Lights
@@ -115,10 +116,18 @@ class GraphRenderer:
                 integrator.grid.set_radiance(radiance, self._gradient(estimator, radiance))
 
     def render(
-        self, camera, spp: int, seed: int = 0, estimator: str | None = None, lights: Lights | None = None
+        self,
+        camera,
+        spp: int,
+        seed: int = 0,
+        estimator: str | None = None,
+        lights: Lights | None = None,
+        refine: bool = True,
     ) -> np.ndarray:
         """(H, W, 3) float32 linear radiance for a :class:`~cloudgraph.scene.CameraSpec`, in the
-        renderer's light or ``lights`` (the cache's lights, new intensities: :meth:`set_lights`)."""
+        renderer's light or ``lights`` (the cache's lights, new intensities: :meth:`set_lights`).
+        A ``field`` frame of fewer than REFINE_SIDE² samples a pixel has its edges refined
+        (edges.py) unless ``refine`` is False."""
         if lights is not None:
             self.set_lights(lights)
         estimator = estimator or self.estimator
@@ -148,7 +157,18 @@ class GraphRenderer:
         params.update()
         if estimator == "field":  # (a field with view terms sums them toward this camera)
             self.integrator(estimator).field.look_from(camera.eye)
-        return np.array(mi.render(mscene, spp=spp, seed=seed), dtype=np.float32)
+        image = np.array(mi.render(mscene, spp=spp, seed=seed), dtype=np.float32)
+        if estimator == "field" and refine and spp < REFINE_SIDE**2:
+            # The pixels that one ray (or a few) at fixed places cannot stand for: a rim thinner
+            # than a pixel, marched again at REFINE_SIDE² strata's centres (edges.py)
+            mask = edge_pixels(image)
+            if mask.any():
+                lanes = refine_lanes(camera.width, camera.height)
+                positions = strata_positions(mask)
+                field = self.integrator(estimator)
+                samples = field.field_at_film(mscene.sensors()[0], positions, seed, lanes)
+                image = refined(image, mask, samples)
+        return image
 
 
 def render_graph(

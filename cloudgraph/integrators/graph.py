@@ -72,6 +72,7 @@ from ..tracing import (
     envmap_pdf,
     envmap_seen,
     exponential_segment,
+    jit_rng,
     linear_texture,
     power_heuristic,
     ratio_tracking,
@@ -302,6 +303,21 @@ class GraphIntegrator(mi.SamplingIntegrator):
         if not self.has_sky and not self.envs:
             return L
         return dr.select(seen, L, 0.0)
+
+    def field_at_film(self, sensor, positions: np.ndarray, seed: int, lanes: int) -> np.ndarray:
+        """(n, 3) the ``field`` estimator's radiance along the sensor's rays through n film
+        positions ((n, 2) in [0, 1]², edges.strata_positions): render.py's edge refinement.
+        The kernel is launched on ``lanes`` >= n rays, the rest idle: Dr.Jit's kernels here
+        hash their width, so a fixed width per image size (and the positions and the seed as
+        inputs that compile once, tracing.py) compiles one kernel whatever the camera."""
+        n = len(positions)
+        padded = np.full((lanes, 2), 0.5, np.float32)
+        padded[:n] = positions
+        ray, _ = sensor.sample_ray(0.0, 0.5, to_jit(mi.Point2f, padded), mi.Point2f(0.5))
+        rng = jit_rng(lanes, seed, 0)
+        active = dr.arange(mi.UInt32, lanes) < dr.opaque(mi.UInt32, n)
+        L = self._field(mi.Point3f(ray.o), mi.Vector3f(ray.d), rng, active)
+        return np.array(L, dtype=np.float32).reshape(3, lanes).T[:n]
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         n = dr.width(ray.o)

@@ -15,8 +15,8 @@ ENGINE = Path(__file__).resolve().parents[2] / "cloudgraph"
 LAYERS: list[set[str]] = [
     # foundations: errors, shared lists, atomic writes, the package (format version), the heap
     {"cloudgraph", "integrators", "errors", "options", "files", "chunks", "graph", "transport", "heap"},
-    # the scene spec, images and metrics, the VDB header, the graph file's format
-    {"vdb", "scene", "image", "metrics", "graph_file", "light_depth"},
+    # the scene spec, images, their metrics and edges, the VDB header, the graph file's format
+    {"vdb", "scene", "image", "metrics", "edges", "graph_file", "light_depth"},
     {"volume", "sunsky"},  # volumes; a sunsky light's sun and sky map (from Mitsuba's model)
     # walks of the medium, Mitsuba scenes, parameters, the volume store, test volumes, lights
     {"tracing", "mitsuba_scene", "params", "store", "procedural", "lights"},
