@@ -90,6 +90,22 @@ FIELD_TR_MIN = 1e-3
 FIELD_EDGE_SAMPLES = 3
 
 
+#: Lanes in a run of the refinement's rays (field_at_film): whole packets of the widest SIMD.
+REFINE_RUN = 256
+
+
+def spread_lanes(n: int, lanes: int, run: int = REFINE_RUN) -> np.ndarray:
+    """(n,) the lanes of n rays among ``lanes`` (>= n): runs of ``run`` consecutive lanes, the
+    runs' starts spread evenly over the width."""
+    i = np.arange(n)
+    runs = -(-n // run)
+    spacing = lanes // max(runs, 1)
+    if spacing < run:  # (nearly every lane taken: one block of them)
+        return i
+    starts = np.arange(runs) * spacing // run * run
+    return starts[i // run] + i % run
+
+
 @dataclass
 class FieldTextures:
     """A :class:`~cloudgraph.field.RadianceField` in Dr.Jit for the ``field`` estimator.
@@ -309,15 +325,19 @@ class GraphIntegrator(mi.SamplingIntegrator):
         positions ((n, 2) in [0, 1]², edges.strata_positions): render.py's edge refinement.
         The kernel is launched on ``lanes`` >= n rays, the rest idle: Dr.Jit's kernels here
         hash their width, so a fixed width per image size (and the positions and the seed as
-        inputs that compile once, tracing.py) compiles one kernel whatever the camera."""
+        inputs that compile once, tracing.py) compiles one kernel whatever the camera. The n
+        rays are dealt out in runs of REFINE_RUN lanes spread evenly over the width: Dr.Jit
+        splits a kernel's width among its threads in contiguous blocks, and rays packed at the
+        front would all fall to one thread."""
         n = len(positions)
-        padded = np.full((lanes, 2), 0.5, np.float32)
-        padded[:n] = positions
-        ray, _ = sensor.sample_ray(0.0, 0.5, to_jit(mi.Point2f, padded), mi.Point2f(0.5))
+        lane = spread_lanes(n, lanes)
+        padded = np.full((lanes, 2), -1.0, np.float32)  # (x < 0: an idle lane)
+        padded[lane] = positions
+        pos = to_jit(mi.Point2f, padded)
+        ray, _ = sensor.sample_ray(0.0, 0.5, dr.maximum(pos, 0.0), mi.Point2f(0.5))
         rng = jit_rng(lanes, seed, 0)
-        active = dr.arange(mi.UInt32, lanes) < dr.opaque(mi.UInt32, n)
-        L = self._field(mi.Point3f(ray.o), mi.Vector3f(ray.d), rng, active)
-        return np.array(L, dtype=np.float32).reshape(3, lanes).T[:n]
+        L = self._field(mi.Point3f(ray.o), mi.Vector3f(ray.d), rng, pos.x >= 0.0)
+        return np.array(L, dtype=np.float32).reshape(3, lanes).T[lane]
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         n = dr.width(ray.o)

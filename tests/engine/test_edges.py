@@ -105,3 +105,15 @@ def test_refining_a_moved_camera_launches_only_kernels_already_compiled(sphere):
     assert edge_pixels(a).sum() != edge_pixels(b).sum() > 0  # both refined, other ray counts
     assert np.abs(first - second).mean() > 0.1 * first.mean()  # the view did change
     assert not new, f"kernels compiled for the moved camera: {new}"
+
+
+def test_the_refinements_rays_are_spread_over_the_kernels_width_in_whole_runs(variant):
+    from cloudgraph.integrators.graph import REFINE_RUN, spread_lanes
+
+    for n, lanes in ((1, 9), (700, 9000), (5000, 147456), (1000, 1000), (1000, 1100)):
+        lane = spread_lanes(n, lanes)
+        assert len(np.unique(lane)) == n and lane.min() >= 0 and lane.max() < lanes
+        assert np.all(np.diff(lane[: min(n, REFINE_RUN)]) == 1)  # a run is consecutive lanes
+    lane = spread_lanes(5000, 147456)
+    # Dr.Jit gives each thread a contiguous block of the width: each half holds about half
+    assert abs(int((lane < 147456 // 2).sum()) - 2500) <= 2 * REFINE_RUN
