@@ -1,0 +1,109 @@
+"""The field's edge refinement at one sample a pixel (cloudgraph/edges.py) on every bench view.
+
+Per scene, camera and albedo: the 1-spp ``field`` frame without and with refinement against the
+field's own 64-spp frame (4x4-binned relMAE: the aliasing alone, no reference needed), the
+fraction of pixels refined, and warm frame times at 64² and 256² (median of 5). No volpath:
+the references' rows are ``cloudgraph bench --parts``.
+
+    .venv/bin/python -m bench.edges [--scenes sphere dense ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .harness import LIGHT, _scene, bench_scenes, cameras
+from .report import machine, row_md, table, write_results
+
+SCENES = ["sphere", "noise", "smoke1", "blender", "holdout", "dense", "thick", "holdout_thick"]
+COLUMNS = [
+    "scene",
+    "camera",
+    "albedo",
+    "plain_vs_aa_pct",
+    "refined_vs_aa_pct",
+    "refined_fraction",
+    "rays_per_pixel",
+    "ms64_plain",
+    "ms64_refined",
+    "ms256_plain",
+    "ms256_refined",
+]
+
+
+def _ms(render) -> float:
+    render()  # (warm)
+    times = []
+    for _ in range(5):
+        t0 = time.perf_counter()
+        render()
+        times.append(time.perf_counter() - t0)
+    return round(1000 * float(np.median(times)), 1)
+
+
+def run(scenes, out_dir: Path, quality: str = "default") -> list[dict]:
+    from cloudgraph.cache import CacheStore
+    from cloudgraph.edges import REFINE_SIDE, edge_pixels
+    from cloudgraph.metrics import bias_metrics
+    from cloudgraph.precompute import precompute
+    from cloudgraph.render import GraphRenderer
+
+    store = CacheStore(out_dir.parent / "cache")
+    rows = []
+    for bs in bench_scenes(scenes):
+        for albedo in (1.0, 0.8):
+            for view, cam in cameras(bs.volume, LIGHT, 64).items():
+                scene = _scene(bs, cam, albedo, 16, seed=0)
+                r = GraphRenderer(precompute(scene, bs.volume, quality, store), bs.volume, scene)
+                antialiased = r.render(scene.camera, 64, 1, "field")
+                plain = r.render(scene.camera, 1, 1, "field", refine=False)
+                sharp = r.render(scene.camera, 1, 1, "field")
+                fraction = float(edge_pixels(plain).mean())
+                row = {
+                    "scene": bs.name,
+                    "camera": view,
+                    "albedo": albedo,
+                    "plain_vs_aa_pct": 100 * bias_metrics(plain, antialiased)["binned_relMAE"],
+                    "refined_vs_aa_pct": 100 * bias_metrics(sharp, antialiased)["binned_relMAE"],
+                    "refined_fraction": round(fraction, 3),
+                    "rays_per_pixel": round(1 + REFINE_SIDE**2 * fraction, 2),
+                }
+                for size in (64, 256):
+                    c = scene.camera.model_copy(update={"width": size, "height": size})
+                    for refine in (False, True):
+
+                        def frame(r=r, c=c, refine=refine):
+                            return r.render(c, 1, 1, "field", refine=refine)
+
+                        row[f"ms{size}_{'refined' if refine else 'plain'}"] = _ms(frame)
+                rows.append(row)
+                print(row_md(row, COLUMNS), flush=True)
+    m = machine()
+    text = (
+        f"# Edge refinement of 1-spp field frames (bench/edges.py)\n\nMachine: {m['cpu']}, {m['cores']} "
+        f"cores; variant {m['variant']}; quality {quality}; 64² views; *_vs_aa_pct: 4x4-binned relMAE "
+        "against the field's 64-spp frame; rays_per_pixel at 64²; ms*: warm frames, median of 5.\n\n"
+        + table(rows, COLUMNS)
+    )
+    write_results(out_dir, "edges", {"machine": m, "quality": quality, "rows": rows}, text)
+    return rows
+
+
+def main(argv=None) -> None:
+    from cloudgraph.mitsuba_scene import set_variant
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--scenes", nargs="*", default=SCENES)
+    p.add_argument("--quality", default="default")
+    p.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
+    a = p.parse_args(argv)
+    set_variant()
+    run(a.scenes, Path(a.out), a.quality)
+
+
+if __name__ == "__main__":
+    main()
