@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .harness import LIGHT, _scene, bench_scenes, cameras
+from .harness import _scene, bench_views
 from .report import machine, row_md, table, write_results
 
 SCENES = ["sphere", "noise", "smoke1", "blender", "holdout", "dense", "thick", "holdout_thick"]
@@ -54,34 +54,32 @@ def run(scenes, out_dir: Path, quality: str = "default") -> list[dict]:
 
     store = CacheStore(out_dir.parent / "cache")
     rows = []
-    for bs in bench_scenes(scenes):
-        for albedo in (1.0, 0.8):
-            for view, cam in cameras(bs.volume, LIGHT, 64).items():
-                scene = _scene(bs, cam, albedo, 16, seed=0)
-                r = GraphRenderer(precompute(scene, bs.volume, quality, store), bs.volume, scene)
-                antialiased = r.render(scene.camera, 64, 1, "field")
-                plain = r.render(scene.camera, 1, 1, "field", refine=False)
-                sharp = r.render(scene.camera, 1, 1, "field")
-                fraction = float(edge_pixels(plain).mean())
-                row = {
-                    "scene": bs.name,
-                    "camera": view,
-                    "albedo": albedo,
-                    "plain_vs_aa_pct": 100 * bias_metrics(plain, antialiased)["binned_relMAE"],
-                    "refined_vs_aa_pct": 100 * bias_metrics(sharp, antialiased)["binned_relMAE"],
-                    "refined_fraction": round(fraction, 3),
-                    "rays_per_pixel": round(1 + REFINE_SIDE**2 * fraction, 2),
-                }
-                for size in (64, 256):
-                    c = scene.camera.model_copy(update={"width": size, "height": size})
-                    for refine in (False, True):
+    for bs, albedo, view, cam in bench_views(scenes):
+        scene = _scene(bs, cam, albedo, 16, seed=0)
+        r = GraphRenderer(precompute(scene, bs.volume, quality, store), bs.volume, scene)
+        antialiased = r.render(scene.camera, 64, 1, "field")
+        plain = r.render(scene.camera, 1, 1, "field", refine=False)
+        sharp = r.render(scene.camera, 1, 1, "field")
+        fraction = float(edge_pixels(plain).mean())
+        row = {
+            "scene": bs.name,
+            "camera": view,
+            "albedo": albedo,
+            "plain_vs_aa_pct": 100 * bias_metrics(plain, antialiased)["binned_relMAE"],
+            "refined_vs_aa_pct": 100 * bias_metrics(sharp, antialiased)["binned_relMAE"],
+            "refined_fraction": round(fraction, 3),
+            "rays_per_pixel": round(1 + REFINE_SIDE**2 * fraction, 2),
+        }
+        for size in (64, 256):
+            c = scene.camera.model_copy(update={"width": size, "height": size})
+            for refine in (False, True):
 
-                        def frame(r=r, c=c, refine=refine):
-                            return r.render(c, 1, 1, "field", refine=refine)
+                def frame(r=r, c=c, refine=refine):
+                    return r.render(c, 1, 1, "field", refine=refine)
 
-                        row[f"ms{size}_{'refined' if refine else 'plain'}"] = _ms(frame)
-                rows.append(row)
-                print(row_md(row, COLUMNS), flush=True)
+                row[f"ms{size}_{'refined' if refine else 'plain'}"] = _ms(frame)
+        rows.append(row)
+        print(row_md(row, COLUMNS), flush=True)
     m = machine()
     text = (
         f"# Edge refinement of 1-spp field frames (bench/edges.py)\n\nMachine: {m['cpu']}, {m['cores']} "

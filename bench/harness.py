@@ -86,6 +86,15 @@ def bench_scenes(names: list[str] | None = None) -> list[BenchScene]:
     return out
 
 
+def bench_views(scenes: list[str] | None = None, size: int = 64):
+    """(scene, albedo, camera name, camera) over the bench scenes, albedos 1 and 0.8, side- and
+    back-lit (:func:`cameras`)."""
+    for bs in bench_scenes(scenes):
+        for albedo in (1.0, 0.8):
+            for name, camera in cameras(bs.volume, LIGHT, size).items():
+                yield bs, albedo, name, camera
+
+
 def cameras(volume: Volume, light_dir: np.ndarray, size: int) -> dict[str, dict]:
     """A side-lit camera (90 degrees from the light) and a back-lit one (looking towards it)."""
     lo, hi = volume.world_bbox()
