@@ -22,7 +22,7 @@ REFINE_SIDE = 3
 #: is its mean).
 REFINE_CONTRAST = 0.1
 #: At most this fraction of a frame's pixels is refined, those that bend most: a frame costs at
-#: most 1 + REFINE_MAX REFINE_SIDE² rays a pixel (the bench's 64² frames refine 5-18 %; a
+#: most 1 + REFINE_MAX REFINE_SIDE² rays a pixel (the bench's 64² frames refine 4-18 %; a
 #: small cloud seen through a coarse field can bend at most pixels).
 REFINE_MAX = 0.25
 
