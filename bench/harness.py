@@ -410,35 +410,33 @@ def run_converged(scenes: list[str] | None = None, out_dir: str | Path = "bench/
     out_dir = Path(out_dir)
     store = CacheStore(out_dir.parent / "cache")
     rows = []
-    for bs in bench_scenes(scenes):
-        for albedo in (1.0, 0.8):
-            for cam_name, camera in cameras(bs.volume, LIGHT, 64).items():
-                scene = _scene(bs, camera, albedo, 64, seed=0)
-                t0 = time.perf_counter()
-                cache = precompute(scene, bs.volume, quality, store)
-                pre_s = time.perf_counter() - t0
-                ref_spp, ref, own = reference_within(bs, scene, out_dir.parent / "reference-cache")
-                renderer = GraphRenderer(cache, bs.volume, scene)
-                g = bias_metrics(renderer.render(scene.camera, CONVERGED_SPP, 1, "gather"), ref)
-                f = bias_metrics(renderer.render(scene.camera, FIELD_CONVERGED_SPP, 1, "field"), ref)
-                s = cache.stats
-                rows.append(
-                    {
-                        "scene": bs.name,
-                        "camera": cam_name,
-                        "albedo": albedo,
-                        "nodes": s["nodes"],
-                        "graph_MB": round(s["graph_bytes"] / 2**20, 2),
-                        "precompute_wall_s": round(pre_s, 2),
-                        "gather_mean_ratio": g["mean_ratio"],
-                        "gather_binned_relMAE_pct": 100 * g["binned_relMAE"],
-                        "field_mean_ratio": f["mean_ratio"],
-                        "field_binned_relMAE_pct": 100 * f["binned_relMAE"],
-                        "ref_spp": ref_spp,
-                        "ref_binned_noise_pct": 100 * own,
-                    }
-                )
-                print(row_md(rows[-1], CONVERGED_COLUMNS), flush=True)
+    for bs, albedo, cam_name, camera in bench_views(scenes):
+        scene = _scene(bs, camera, albedo, 64, seed=0)
+        t0 = time.perf_counter()
+        cache = precompute(scene, bs.volume, quality, store)
+        pre_s = time.perf_counter() - t0
+        ref_spp, ref, own = reference_within(bs, scene, out_dir.parent / "reference-cache")
+        renderer = GraphRenderer(cache, bs.volume, scene)
+        g = bias_metrics(renderer.render(scene.camera, CONVERGED_SPP, 1, "gather"), ref)
+        f = bias_metrics(renderer.render(scene.camera, FIELD_CONVERGED_SPP, 1, "field"), ref)
+        s = cache.stats
+        rows.append(
+            {
+                "scene": bs.name,
+                "camera": cam_name,
+                "albedo": albedo,
+                "nodes": s["nodes"],
+                "graph_MB": round(s["graph_bytes"] / 2**20, 2),
+                "precompute_wall_s": round(pre_s, 2),
+                "gather_mean_ratio": g["mean_ratio"],
+                "gather_binned_relMAE_pct": 100 * g["binned_relMAE"],
+                "field_mean_ratio": f["mean_ratio"],
+                "field_binned_relMAE_pct": 100 * f["binned_relMAE"],
+                "ref_spp": ref_spp,
+                "ref_binned_noise_pct": 100 * own,
+            }
+        )
+        print(row_md(rows[-1], CONVERGED_COLUMNS), flush=True)
     result = {"machine": machine(), "quality": quality, "reference_spp": CONVERGED_REF_SPP, "rows": rows}
     m = result["machine"]
     text = (

@@ -17,7 +17,7 @@ from cloudgraph.metrics import bias_metrics
 from cloudgraph.precompute import precompute
 from cloudgraph.render import GraphRenderer
 
-from .harness import CONVERGED_SPP, LIGHT, _scene, bench_scenes, cameras, reference
+from .harness import CONVERGED_SPP, _scene, bench_views, reference
 from .report import machine, row_md, table, write_results
 
 #: The scenes of ``--parts`` when none are named: the optically thick ones, held-out included.
@@ -54,33 +54,29 @@ def run_parts(
     store = CacheStore(out_dir.parent / "cache")
     refs = out_dir.parent / "reference-cache"
     rows = []
-    for bs in bench_scenes(scenes or PARTS_SCENES):
-        for albedo in (1.0, 0.8):
-            for cam_name, camera in cameras(bs.volume, LIGHT, 64).items():
-                for part in parts or PARTS:
-                    depth = PARTS[part]
-                    scene = _scene(bs, camera, albedo, 16, seed=0)
-                    scene = scene.model_copy(
-                        update={"render": scene.render.model_copy(update={"max_depth": depth})}
-                    )
-                    cache = precompute(scene, bs.volume, quality, store)
-                    ref = reference(bs, scene, ref_spp, refs) if ref_spp > 0 else None
-                    renderer = GraphRenderer(cache, bs.volume, scene)
-                    gather = renderer.render(scene.camera, CONVERGED_SPP, 1, "gather")
-                    field16 = renderer.render(scene.camera, 16, 1, "field")
-                    field1 = renderer.render(scene.camera, 1, 1, "field")
-                    row = {"scene": bs.name, "camera": cam_name, "albedo": albedo, "part": part}
-                    for name, image in (("gather", gather), ("field16", field16), ("field1", field1)):
-                        if ref is not None:
-                            m = bias_metrics(image, ref)
-                            row[f"{name}_binned_relMAE_pct"] = 100 * m["binned_relMAE"]
-                            row[f"{name}_mean_ratio"] = m["mean_ratio"]
-                    m = bias_metrics(field16, gather)
-                    row["field16_vs_gather_pct"] = 100 * m["binned_relMAE"]
-                    row["field16_vs_gather_mean"] = m["mean_ratio"]
-                    row["ref_spp"] = ref_spp if ref is not None else None
-                    rows.append(row)
-                    print(row_md(row, PARTS_COLUMNS), flush=True)
+    for bs, albedo, cam_name, camera in bench_views(scenes or PARTS_SCENES):
+        for part in parts or PARTS:
+            depth = PARTS[part]
+            scene = _scene(bs, camera, albedo, 16, seed=0)
+            scene = scene.model_copy(update={"render": scene.render.model_copy(update={"max_depth": depth})})
+            cache = precompute(scene, bs.volume, quality, store)
+            ref = reference(bs, scene, ref_spp, refs) if ref_spp > 0 else None
+            renderer = GraphRenderer(cache, bs.volume, scene)
+            gather = renderer.render(scene.camera, CONVERGED_SPP, 1, "gather")
+            field16 = renderer.render(scene.camera, 16, 1, "field")
+            field1 = renderer.render(scene.camera, 1, 1, "field")
+            row = {"scene": bs.name, "camera": cam_name, "albedo": albedo, "part": part}
+            for name, image in (("gather", gather), ("field16", field16), ("field1", field1)):
+                if ref is not None:
+                    m = bias_metrics(image, ref)
+                    row[f"{name}_binned_relMAE_pct"] = 100 * m["binned_relMAE"]
+                    row[f"{name}_mean_ratio"] = m["mean_ratio"]
+            m = bias_metrics(field16, gather)
+            row["field16_vs_gather_pct"] = 100 * m["binned_relMAE"]
+            row["field16_vs_gather_mean"] = m["mean_ratio"]
+            row["ref_spp"] = ref_spp if ref is not None else None
+            rows.append(row)
+            print(row_md(row, PARTS_COLUMNS), flush=True)
     result = {"machine": machine(), "quality": quality, "reference_spp": ref_spp, "rows": rows}
     m = result["machine"]
     text = (

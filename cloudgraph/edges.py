@@ -60,6 +60,24 @@ def refine_lanes(width: int, height: int, side: int = REFINE_SIDE, most: float =
     return max(int(most * width * height), 1) * side * side
 
 
+#: Lanes in a run of the refinement's rays (:func:`spread_lanes`): whole packets of the widest SIMD.
+REFINE_RUN = 256
+
+
+def spread_lanes(n: int, lanes: int, run: int = REFINE_RUN) -> np.ndarray:
+    """(n,) the lanes of n rays in a kernel of ``lanes`` (>= n, :func:`refine_lanes`): runs of
+    ``run`` consecutive lanes, the runs' starts spread evenly over the width. Dr.Jit splits a
+    kernel's width among its threads in contiguous blocks; rays packed at the front would all
+    fall to one thread."""
+    i = np.arange(n)
+    runs = -(-n // run)
+    spacing = lanes // max(runs, 1)
+    if spacing < run:  # (nearly every lane taken: one block of them)
+        return i
+    starts = np.arange(runs) * spacing // run * run
+    return starts[i // run] + i % run
+
+
 def strata_positions(mask: np.ndarray, side: int = REFINE_SIDE) -> np.ndarray:
     """(n side², 2) float32 film positions in [0, 1]² (x right, y down, as Mitsuba's sensors
     take them) of the centres of side x side strata in each of the n pixels of ``mask``

@@ -56,6 +56,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..edges import spread_lanes
 from ..errors import SceneError
 from ..field_grid import to_world, unit_points
 from ..mitsuba_scene import envmap_emitter
@@ -88,22 +89,6 @@ FIELD_TR_MIN = 1e-3
 #: Midpoints of the field march's integral of sigma_t to the box where the light enters it
 #: (_tau_light; the page's shader takes as many).
 FIELD_EDGE_SAMPLES = 3
-
-
-#: Lanes in a run of the refinement's rays (field_at_film): whole packets of the widest SIMD.
-REFINE_RUN = 256
-
-
-def spread_lanes(n: int, lanes: int, run: int = REFINE_RUN) -> np.ndarray:
-    """(n,) the lanes of n rays among ``lanes`` (>= n): runs of ``run`` consecutive lanes, the
-    runs' starts spread evenly over the width."""
-    i = np.arange(n)
-    runs = -(-n // run)
-    spacing = lanes // max(runs, 1)
-    if spacing < run:  # (nearly every lane taken: one block of them)
-        return i
-    starts = np.arange(runs) * spacing // run * run
-    return starts[i // run] + i % run
 
 
 @dataclass
@@ -325,10 +310,8 @@ class GraphIntegrator(mi.SamplingIntegrator):
         positions ((n, 2) in [0, 1]², edges.strata_positions): render.py's edge refinement.
         The kernel is launched on ``lanes`` >= n rays, the rest idle: Dr.Jit's kernels here
         hash their width, so a fixed width per image size (and the positions and the seed as
-        inputs that compile once, tracing.py) compiles one kernel whatever the camera. The n
-        rays are dealt out in runs of REFINE_RUN lanes spread evenly over the width: Dr.Jit
-        splits a kernel's width among its threads in contiguous blocks, and rays packed at the
-        front would all fall to one thread."""
+        inputs that compile once, tracing.py) compiles one kernel whatever the camera; the n
+        rays are dealt out over the width (edges.spread_lanes)."""
         n = len(positions)
         lane = spread_lanes(n, lanes)
         padded = np.full((lanes, 2), -1.0, np.float32)  # (x < 0: an idle lane)
@@ -487,14 +470,15 @@ class GraphIntegrator(mi.SamplingIntegrator):
         te = dr.select(dr.abs(lu) < 1e-9, 1e30, dr.maximum(-pc / lu, (1.0 - pc) / lu))
         t_exit = dr.maximum(dr.minimum(dr.minimum(te.x, te.y), te.z), 0.0)  # world units
         edge = t_exit <= self.field.edge
+        near = active & edge
         tau = mi.Float(0.0)  # Optical depth to the box's face
         # A symbolic branch: on the CPU a packet of lanes none of which is near the face skips
         # the quadrature (masked lookups alone cost as much as live ones: smoke1 under two suns,
         # 64² at 16 spp, spent a quarter of its frame here)
-        if active & edge:
+        if near:
             for j in range(FIELD_EDGE_SAMPLES):  # a fixed quadrature, unrolled into the kernel
                 q = pc + ((j + 0.5) / FIELD_EDGE_SAMPLES) * t_exit * lu
-                tau += self.medium.texture.eval(q, active & edge)[0]
+                tau += self.medium.texture.eval(q, near)[0]
         grid = depth_at(self.field.tau[k], pu, active & ~edge, self.field.tau_power)
         return dr.select(edge, tau * self.medium.scale * t_exit / FIELD_EDGE_SAMPLES, grid)
 

@@ -4,7 +4,7 @@ with no kernel compiled for a moved camera."""
 
 import numpy as np
 
-from cloudgraph.edges import REFINE_MAX, edge_pixels, refined, strata_positions
+from cloudgraph.edges import REFINE_MAX, REFINE_RUN, edge_pixels, refined, spread_lanes, strata_positions
 from cloudgraph.metrics import bias_metrics
 
 from ..helpers import LIGHT, framed_camera, kernels_compiled_by_the_second
@@ -107,9 +107,7 @@ def test_refining_a_moved_camera_launches_only_kernels_already_compiled(sphere):
     assert not new, f"kernels compiled for the moved camera: {new}"
 
 
-def test_the_refinements_rays_are_spread_over_the_kernels_width_in_whole_runs(variant):
-    from cloudgraph.integrators.graph import REFINE_RUN, spread_lanes
-
+def test_the_refinements_rays_are_spread_over_the_kernels_width_in_whole_runs():
     for n, lanes in ((1, 9), (700, 9000), (5000, 147456), (1000, 1000), (1000, 1100)):
         lane = spread_lanes(n, lanes)
         assert len(np.unique(lane)) == n and lane.min() >= 0 and lane.max() < lanes
