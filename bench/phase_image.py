@@ -4,7 +4,8 @@ volpath (RR off), ``gather`` and ``field`` on the engine's cache, and the same c
 isotropic phase (field), all at one exposure. Prints each panel's mean ratio and binned relMAE
 against volpath.
 
-    .venv/bin/python -m bench.phase_image --scene smoke1 --g 0.85 --out docs/images/forward-scattering-smoke1.png
+    .venv/bin/python -m bench.phase_image --scene smoke1 --g 0.85 \\
+        --out docs/images/forward-scattering-smoke1.png
 """
 
 from __future__ import annotations

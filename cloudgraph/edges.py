@@ -33,7 +33,10 @@ def edge_pixels(image: np.ndarray, contrast: float = REFINE_CONTRAST, most: floa
     luminance, for s one pixel along a row, a column or either diagonal (the frame's border
     repeated past it); the ``most`` fraction of the pixels that bend most where more do. A frame
     without light has none."""
-    y = np.asarray(image, np.float64).mean(axis=-1)
+    image = np.asarray(image)
+    # (the channels summed one by one: numpy's mean over a short last axis took 7 ms of a fresh
+    # 256² frame, more than the rest of this function)
+    y = sum(image[..., c].astype(np.float64) for c in range(image.shape[-1])) / image.shape[-1]
     scale = float(np.percentile(y, 99))
     if not scale > 0.0:
         return np.zeros(y.shape, bool)
@@ -55,9 +58,12 @@ def edge_pixels(image: np.ndarray, contrast: float = REFINE_CONTRAST, most: floa
     return mask
 
 
-def refine_lanes(width: int, height: int, side: int = REFINE_SIDE, most: float = REFINE_MAX) -> int:
-    """The rays of the most a frame of width x height pixels refines (:func:`edge_pixels`)."""
-    return max(int(most * width * height), 1) * side * side
+def refine_lanes(
+    width: int, height: int, side: int = REFINE_SIDE, most: float = REFINE_MAX, centre: bool = False
+) -> int:
+    """The rays of the most a frame of width x height pixels refines (:func:`edge_pixels`);
+    ``centre``: the middle stratum is the frame's own ray (:func:`strata_positions`)."""
+    return max(int(most * width * height), 1) * (side * side - int(centre))
 
 
 #: Lanes in a run of the refinement's rays (:func:`spread_lanes`): whole packets of the widest SIMD.
@@ -78,23 +84,33 @@ def spread_lanes(n: int, lanes: int, run: int = REFINE_RUN) -> np.ndarray:
     return starts[i // run] + i % run
 
 
-def strata_positions(mask: np.ndarray, side: int = REFINE_SIDE) -> np.ndarray:
+def strata_positions(mask: np.ndarray, side: int = REFINE_SIDE, centre: bool = False) -> np.ndarray:
     """(n side², 2) float32 film positions in [0, 1]² (x right, y down, as Mitsuba's sensors
     take them) of the centres of side x side strata in each of the n pixels of ``mask``
-    (row-major), pixel after pixel."""
+    (row-major), pixel after pixel. ``centre`` (an odd ``side``): without the middle stratum,
+    whose centre is the pixel's, where a frame of one sample a pixel marched it already
+    (n (side² - 1) positions)."""
     h, w = mask.shape
     py, px = np.nonzero(mask)
     u = (np.arange(side) + 0.5) / side
     sy, sx = np.meshgrid(u, u, indexing="ij")  # (side, side) offsets in a pixel
+    if centre:
+        keep = np.arange(side * side) != side * side // 2
+        sy, sx = sy.reshape(-1)[keep], sx.reshape(-1)[keep]
     x = (px[:, None] + sx.reshape(1, -1)) / w
     y = (py[:, None] + sy.reshape(1, -1)) / h
     return np.stack([x.reshape(-1), y.reshape(-1)], axis=-1).astype(np.float32)
 
 
-def refined(image: np.ndarray, mask: np.ndarray, samples: np.ndarray) -> np.ndarray:
+def refined(image: np.ndarray, mask: np.ndarray, samples: np.ndarray, centre: bool = False) -> np.ndarray:
     """``image`` with the pixels of ``mask`` replaced by the mean of their ``samples``: (n k, C)
-    values at :func:`strata_positions` ``(mask)``, k per pixel (a box filter, as the film's)."""
+    values at :func:`strata_positions` ``(mask, centre=centre)``, k per pixel (a box filter, as
+    the film's); ``centre``: the pixel's own value is one more, its middle stratum's."""
     out = np.array(image, copy=True)
     n = int(mask.sum())
-    out[mask] = np.asarray(samples, out.dtype).reshape(n, -1, out.shape[-1]).mean(axis=1)
+    values = np.asarray(samples, np.float64).reshape(n, -1, out.shape[-1])
+    total, k = values.sum(axis=1), values.shape[1]
+    if centre:
+        total, k = total + out[mask], k + 1
+    out[mask] = total / k
     return out

@@ -36,6 +36,7 @@ from .phase import (
 )
 from .tracing import (
     ISOTROPIC_PDF,
+    colour_texture,
     depth_at,
     envmap_nee,
     envmap_pdf,
@@ -43,7 +44,6 @@ from .tracing import (
     exponential_segment,
     from_jit,
     jit_rng,
-    linear_texture,
     power_heuristic,
     step_length,
     to_jit,
@@ -193,14 +193,15 @@ def smooth(values: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
 
 
 def g_texture(G) -> mi.Texture3f:
-    """The texture of a grid of G = albedo L' (nz, ny, nx, 3): G^G_POWER, trilinear."""
-    return linear_texture(np.maximum(np.asarray(G, np.float32), 0.0) ** np.float32(G_POWER))
+    """The texture of a grid of G = albedo L' (nz, ny, nx, 3): G^G_POWER, trilinear; of one
+    channel where the three are the same (tracing.colour_texture)."""
+    return colour_texture(np.maximum(np.asarray(G, np.float32), 0.0) ** np.float32(G_POWER))
 
 
 def g_at(G_tex, pu, mask=True) -> mi.Color3f:
     """G read from :func:`g_texture` at unit-cube points pu."""
     g = G_tex.eval(pu, mask)
-    return mi.Color3f(*(dr.power(c, 1.0 / G_POWER) for c in g))
+    return mi.Color3f(*(dr.power(c, 1.0 / G_POWER) for c in g))  # (one channel: broadcast)
 
 
 def gather_ms(

@@ -161,13 +161,14 @@ class GraphRenderer:
         if estimator == "field" and refine and spp < REFINE_SIDE**2:
             # The pixels that one ray (or a few) at fixed places cannot stand for: a rim thinner
             # than a pixel, marched again at REFINE_SIDE² strata's centres (edges.py)
-            mask = edge_pixels(image)
+            # (at one sample a pixel its ray is the middle stratum's: 8 more rays, not 9)
+            mask, centre = edge_pixels(image), spp == 1 and REFINE_SIDE % 2 == 1
             if mask.any():
-                lanes = refine_lanes(camera.width, camera.height)
-                positions = strata_positions(mask)
+                lanes = refine_lanes(camera.width, camera.height, centre=centre)
+                positions = strata_positions(mask, centre=centre)
                 field = self.integrator(estimator)
                 samples = field.field_at_film(mscene.sensors()[0], positions, seed, lanes)
-                image = refined(image, mask, samples)
+                image = refined(image, mask, samples, centre)
         return image
 
 

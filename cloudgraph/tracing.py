@@ -32,6 +32,19 @@ def linear_texture(values: np.ndarray):
     return mi.Texture3f(tensor, filter_mode=dr.FilterMode.Linear, wrap_mode=dr.WrapMode.Clamp)
 
 
+def colour_texture(values: np.ndarray):
+    """:func:`linear_texture` of (nz, ny, nx, 3) RGB values, of one channel where the three are
+    the same (a grey medium lit by white light: a third of the lookups; :func:`colour_at`)."""
+    grey = all(np.array_equal(values[..., 0], values[..., c]) for c in (1, 2))
+    return linear_texture(np.ascontiguousarray(values[..., :1]) if grey else values)
+
+
+def colour_at(texture, pu, active=True):
+    """A :func:`colour_texture`'s Color3f at unit-cube points pu."""
+    v = texture.eval(pu, active)
+    return mi.Color3f(v[0]) if len(v) == 1 else mi.Color3f(v[0], v[1], v[2])
+
+
 def depth_texture(tau: np.ndarray, power: float):
     """The texture of an optical-depth grid (nz, ny, nx; the field's or finer:
     light_depth.py): q = exp(-power tau), trilinear (power 0, a field file of before the

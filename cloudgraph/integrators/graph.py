@@ -67,6 +67,8 @@ from ..tracing import (
     BLOCK,
     ISOTROPIC_PDF,
     DensityField,
+    colour_at,
+    colour_texture,
     depth_at,
     depth_texture,
     envmap_nee,
@@ -98,7 +100,8 @@ class FieldTextures:
     Attributes:
         tau: optical depth to each directional light, 1 channel each (a list, in the lights'
             order), as q = exp(-tau_power tau) (light_depth.py; tau itself where 0); sun_ms:
-            per directional light its radiance after the first scattering, 3 channels, over its
+            per directional light its radiance after the first scattering (tracing.colour_texture:
+            3 channels, or 1 where they are the same), over its
             light factor exp(-min(P tau_light, range)) (the header's ``ms_light``, ms_light's
             (P (3,), range); P 0 in a file of before it), at unit intensity where ``unit`` (a
             v1.1 field: the march multiplies the sun's irradiance in), else at its own; ms: the
@@ -172,7 +175,7 @@ class FieldTextures:
         return cls(
             tau=tuple(depth_texture(t, power) for t in taus),
             tau_power=power,
-            sun_ms=tuple(linear_texture(a) for a in sun_ms),
+            sun_ms=tuple(colour_texture(a) for a in sun_ms),
             unit=suns is not None,
             ms_light=(tuple(map(float, ml["power"])), float(ml["range"])),
             ms=None if rest is None else linear_texture(rest),
@@ -428,8 +431,7 @@ class GraphIntegrator(mi.SamplingIntegrator):
             L_ms += mi.Color3f(ms[0], ms[1], ms[2])
         power, limit = f.ms_light
         for k, tex in enumerate(f.sun_ms):  # each sun's, times its light factor (unrolled)
-            ms = tex.eval(pu, active)
-            sun = mi.Color3f(ms[0], ms[1], ms[2]) * (self.irradiance[k] if f.unit else 1.0)
+            sun = colour_at(tex, pu, active) * (self.irradiance[k] if f.unit else 1.0)
             if any(power):
                 sun *= dr.exp(-dr.minimum(mi.Color3f(*power) * taus[k], limit))
             L_ms += sun

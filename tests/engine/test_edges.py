@@ -4,7 +4,15 @@ with no kernel compiled for a moved camera."""
 
 import numpy as np
 
-from cloudgraph.edges import REFINE_MAX, REFINE_RUN, edge_pixels, refined, spread_lanes, strata_positions
+from cloudgraph.edges import (
+    REFINE_MAX,
+    REFINE_RUN,
+    edge_pixels,
+    refine_lanes,
+    refined,
+    spread_lanes,
+    strata_positions,
+)
 from cloudgraph.metrics import bias_metrics
 
 from ..helpers import LIGHT, framed_camera, kernels_compiled_by_the_second
@@ -50,6 +58,22 @@ def test_strata_positions_are_the_centres_of_each_refined_pixels_strata():
     np.testing.assert_allclose(pos[:9, 1], np.repeat(1 + u, 3) / 4, rtol=1e-6)
     np.testing.assert_allclose(pos[9:, 0], np.tile(0 + u, 3) / 5, rtol=1e-6)
     np.testing.assert_allclose(pos[9:, 1], np.repeat(3 + u, 3) / 4, rtol=1e-6)
+
+
+def test_at_one_sample_a_pixel_the_middle_stratum_is_the_frames_own_ray():
+    mask = np.zeros((4, 5), bool)
+    mask[1, 2] = mask[3, 0] = True
+    every, without = strata_positions(mask, side=3), strata_positions(mask, side=3, centre=True)
+    assert without.shape == (16, 2)
+    # the pixel's centre, where a frame of one sample a pixel put its ray, is left out, the
+    # other eight kept in order
+    keep = np.arange(18) % 9 != 4
+    np.testing.assert_array_equal(without, every[keep])
+    np.testing.assert_allclose(every[~keep], [[2.5 / 5, 1.5 / 4], [0.5 / 5, 3.5 / 4]], rtol=1e-6)
+    image = np.full((4, 5, 3), 9.0, np.float32)
+    out = refined(image, mask, np.zeros((16, 3)), centre=True)  # its own value is one sample of 9
+    np.testing.assert_allclose(out[mask], 1.0, rtol=1e-6)
+    assert refine_lanes(8, 8, centre=True) == 16 * 8 and refine_lanes(8, 8) == 16 * 9
 
 
 def test_refined_pixels_are_their_samples_mean_and_the_rest_are_kept():

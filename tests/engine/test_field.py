@@ -263,6 +263,28 @@ def test_the_bake_reads_g_between_grid_points_as_its_power(variant):
     assert got[1, 0] < 0.95 * 5.0  # well below the mean of 1 and 9 halfway
 
 
+def test_grey_grids_are_one_channel_textures_that_read_as_the_three(variant):
+    # A grey medium's L_ms and G have three equal channels: kept in one, they read the same
+    # values (a third of the lookups); a coloured grid keeps its three
+    import mitsuba as mi
+
+    from cloudgraph.field_ms import G_POWER, g_at, g_texture
+    from cloudgraph.tracing import colour_at, colour_texture, linear_texture
+
+    rng = np.random.default_rng(3)
+    grey = np.repeat(rng.random((3, 4, 5, 1), np.float32), 3, axis=-1)
+    coloured = grey * np.array([1.0, 0.5, 0.25], np.float32)
+    p = mi.Point3f(*(rng.random(64).astype(np.float32) for _ in range(3)))
+    for values in (grey, coloured):
+        tex = colour_texture(values)
+        assert tex.tensor().shape[-1] == (1 if values is grey else 3)
+        got = np.array(colour_at(tex, p))
+        want = np.array(linear_texture(values).eval(p))
+        np.testing.assert_array_equal(got, want)
+        want_g = np.array(g_at(linear_texture(values ** np.float32(G_POWER)), p))
+        np.testing.assert_allclose(np.array(g_at(g_texture(values), p)), want_g, rtol=1e-6)
+
+
 def test_field_renders_are_deterministic_and_converged_at_one_sample(sphere):
     volume, scene, cache = sphere["volume"], sphere["scene"], sphere["cache"]
     r = renderer(cache, volume, scene)
