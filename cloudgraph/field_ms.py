@@ -244,7 +244,10 @@ def _march_ms(
     """int T_r sigma_t G dt along each ray to the box boundary (trapezoid in optical depth, as the
     field estimator marches; G with ``sun``'s direct light: :func:`gather_ms`), plus T_r to the
     boundary times ``sky`` or the environment map ``env`` seen along the ray; blocks without
-    density are crossed in one step."""
+    density are crossed in one step. A segment's end where sigma_t is 0, past the medium's edge,
+    takes the other end's G: a flight reads nothing there, and the sun's light just outside a
+    cloud is the unshadowed sky's (read as if the medium reached it, the bench sphere back-lit
+    at albedo 0.8 read 1.048 of ``gather``, 1.026 now; docs/measurements.md)."""
     t, t_end = medium.box_interval(o, d)
 
     def at(t):
@@ -267,7 +270,8 @@ def _march_ms(
         dt = dr.clip(MS_MAX_DTAU / dr.maximum(sigma_maj, 1e-12), step, MS_STRIDE * step)
         dt = step_length(empty, t, t_leave, t_end, dt, 1e-3 * step)
         s1, G1 = at(t + dt)
-        seg_Tr, seg_G = exponential_segment(dr.select(empty, 0.0, 0.5 * (s0 + s1) * dt), G0, G1)
+        g0, g1 = dr.select(s0 > 0.0, G0, G1), dr.select(s1 > 0.0, G1, G0)  # (each where the medium is)
+        seg_Tr, seg_G = exponential_segment(dr.select(empty, 0.0, 0.5 * (s0 + s1) * dt), g0, g1)
         L += Tr * seg_G
         Tr *= seg_Tr
         t += dt

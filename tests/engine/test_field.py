@@ -18,7 +18,17 @@ from cloudgraph.light_depth import FINE_POWER
 from cloudgraph.metrics import bias_metrics, binned
 from cloudgraph.precompute import precompute
 
-from ..helpers import LIGHT, SIDE, box_interval, cube_volume, dense_cloud, medium_scene, pixel_rays, reference
+from ..helpers import (
+    LIGHT,
+    SIDE,
+    box_interval,
+    cube_volume,
+    dense_cloud,
+    framed_camera,
+    medium_scene,
+    pixel_rays,
+    reference,
+)
 
 
 def renderer(cache, volume, scene):
@@ -181,12 +191,12 @@ def test_a_side_lit_dense_cloud_s_multiple_scattering_reads_as_gather_does(varia
     r = renderer(cache, volume, scene)
     field = r.render(scene.camera, spp=16, seed=1, estimator="field").astype(np.float64)
     gather = r.render(scene.camera, spp=1024, seed=1, estimator="gather").astype(np.float64)
-    # measured (32^2, draft), field / gather in the mean and binned relMAE: 0.994, 1.17 % (the
-    # suns' part of the bake's G at grid points: 0.998, 1.02 %); with the march's voxel steps and
-    # P = (0.1, 0.45) 0.994, 1.01 %, without the factor 0.984, 1.90 %; gather's own binned noise
-    # 0.71 %
-    assert abs(field.mean() / gather.mean() - 1) < 0.01
-    assert rel_mae(field, gather) < 0.014
+    # measured (32^2, draft), field / gather in the mean and binned relMAE: 0.991, 1.41 % (0.992,
+    # 1.40 % before a step's end past the medium's edge took the other end's G; 0.994, 1.17 % when
+    # this test was written); the suns' part of G baked at grid points 0.998, 1.02 %; without
+    # the factor 0.984, 1.90 %; gather's own binned noise 0.71 %
+    assert abs(field.mean() / gather.mean() - 1) < 0.012
+    assert rel_mae(field, gather) < 0.016
 
 
 def test_a_back_lit_dense_cloud_s_multiple_scattering_reads_the_sun_where_the_bake_s_flights_are(
@@ -206,6 +216,28 @@ def test_a_back_lit_dense_cloud_s_multiple_scattering_reads_the_sun_where_the_ba
     # the sun baked into G 1.0209, 2.72 %; gather's own binned noise 1.61 %
     assert abs(field.mean() / gather.mean() - 1) < 0.015
     assert rel_mae(field, gather) < 0.024
+
+
+def test_the_bake_s_flights_read_the_sun_on_a_back_lit_sphere_s_dark_side_as_gather_does(variant, tmp_path):
+    # The second scattering alone (max_depth 2): the bake's flights from the dark side's grid
+    # points leave the sphere, and the sun's light just outside it is the unshadowed sky's. A
+    # step past the medium's edge read that light as if the medium reached it (field read 1.046
+    # of gather); its end there now takes the other end's (field_ms._march_ms)
+    from cloudgraph.procedural import sphere_volume
+    from cloudgraph.scene import CameraSpec
+
+    volume = sphere_volume(24)
+    scene = medium_scene(volume, 4.0 / 11, albedo=0.8)  # optical radius 4
+    scene = scene.model_copy(update={"render": scene.render.model_copy(update={"max_depth": 2})})
+    camera = CameraSpec(**framed_camera(volume, eye_dir=LIGHT, size=40))
+    cache = precompute(scene, volume, "draft", CacheStore(tmp_path))
+    r = renderer(cache, volume, scene)
+    field = r.render(camera, spp=16, seed=1, estimator="field").astype(np.float64)
+    gather = r.render(camera, spp=4096, seed=1, estimator="gather").astype(np.float64)
+    # measured (40^2, draft), field / gather in the mean and binned relMAE: 1.026, 2.90 %; before
+    # 1.046, 4.76 % (gather's own binned noise about 0.5 %)
+    assert abs(field.mean() / gather.mean() - 1) < 0.035
+    assert rel_mae(field, gather) < 0.038
 
 
 def test_a_field_baked_again_from_a_stored_radiance_is_the_same(variant, tmp_path):
