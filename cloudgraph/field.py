@@ -71,6 +71,7 @@ from .tracing import (
     depth_texture,
     envmap_seen,
     from_jit,
+    opaque,
     step_length,
     to_jit,
     towards_light,
@@ -402,7 +403,7 @@ def field_chunk(builder, stage: str, index: int, inputs: dict) -> tuple[np.ndarr
         return np.array([a]), _lookup(inputs, q, builder.params.radius)
     if stage == "field_tau":
         step = float(inputs["step"][0])
-        to_light = mi.Vector3f(*(float(c) for c in inputs["to_light"]))
+        to_light = opaque(mi.Vector3f, inputs["to_light"])  # (a new light compiles nothing)
         tau = _optical_depth(medium, to_jit(mi.Point3f, q), to_light, step)
         values = np.array(tau, np.float32)[:, None]
     else:
@@ -417,7 +418,7 @@ def field_chunk(builder, stage: str, index: int, inputs: dict) -> tuple[np.ndarr
             step = float(inputs["step"][0])
             sun = None
             if "sun" in inputs:
-                sun = (mi.Color3f(*(float(c) for c in inputs["sun"])), tau_tex, power)
+                sun = (opaque(mi.Color3f, inputs["sun"]), tau_tex, power)
             values = gather_ms(medium, G_tex, q, step, seed=a, sky=sky, env=env, sun=sun)
     return np.array([a]), values
 

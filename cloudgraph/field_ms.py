@@ -44,6 +44,7 @@ from .tracing import (
     exponential_segment,
     from_jit,
     jit_rng,
+    opaque,
     power_heuristic,
     step_length,
     to_jit,
@@ -315,7 +316,7 @@ def walk_ms(medium, G_tex, tau, points: np.ndarray, inputs: dict, seed: int) -> 
     n = m * k
     rng = jit_rng(n, seed, dr.arange(mi.UInt64, n))
     o = dr.gather(mi.Point3f, to_jit(mi.Point3f, points), dr.arange(mi.UInt32, n) // k)
-    s = mi.Vector3f(*to_light)
+    s = opaque(mi.Vector3f, to_light)  # (the light's direction and colour: a relight compiles nothing)
     uniform = rng.next_float32() < 0.5
     w = dr.select(uniform, uniform_sphere(rng), sample_phase(lobes, s, rng))
     pdf = 0.5 / (4.0 * dr.pi) + 0.5 * hg_phase(lobes, dr.dot(w, s))
@@ -331,7 +332,7 @@ def walk_ms(medium, G_tex, tau, points: np.ndarray, inputs: dict, seed: int) -> 
     def sun_tr(i, p, mask):  # the bake's own light march, interpolated as the camera's march does
         return dr.exp(-depth_at(tau, medium.world_to_unit @ mi.Point3f(p), mask, power))
 
-    suns = [(to_light, mi.Color3f(*(float(c) for c in E)))]
+    suns = [(s, opaque(mi.Color3f, E))]
     bounces = int(inputs["bounces"][0])
     tail = tail if inputs["tail"][0] else None
     L = phase_walk(medium, lobes, suns, albedo, nothing, tail, o, w, rng, mi.Bool(True), bounces, sun_tr)
@@ -343,9 +344,10 @@ def walk_ms(medium, G_tex, tau, points: np.ndarray, inputs: dict, seed: int) -> 
     dr.eval(weight, w)  # the walks once: each sum below reads them
     # Projected per point: the sums over a point's k consecutive walks
     frame = light_frame(to_light)
-    local = [dr.dot(w, mi.Vector3f(*(float(c) for c in e))) for e in frame]
+    local = [dr.dot(w, opaque(mi.Vector3f, e)) for e in frame]
     inv = np.where(E > 0, 1.0 / np.where(E > 0, E, 1.0), 0.0) / 3.0
-    unit = weight.x * float(inv[0]) + weight.y * float(inv[1]) + weight.z * float(inv[2])
+    inv = opaque(mi.Color3f, inv)
+    unit = weight.x * inv[0] + weight.y * inv[1] + weight.z * inv[2]
     sums = [dr.block_sum(v, k) for v in (weight.x, weight.y, weight.z)]
     sums += [dr.block_sum(unit * b, k) for b in shape_basis(*local)]
     dr.eval(sums)

@@ -20,7 +20,16 @@ import mitsuba as mi
 import numpy as np
 
 from .mitsuba_scene import envmap_emitter
-from .tracing import DensityField, from_jit, jit_rng, ratio_tracking, to_jit, towards_light, uniform_sphere
+from .tracing import (
+    DensityField,
+    from_jit,
+    jit_rng,
+    opaque,
+    ratio_tracking,
+    to_jit,
+    towards_light,
+    uniform_sphere,
+)
 
 #: Nodes per chunk of the direct lighting (chunks may run on other workers).
 LIGHTING_CHUNK = 1 << 15
@@ -57,7 +66,7 @@ def direct_radiance(
         return np.zeros((0, 3))
     to_light = towards_light(light_dir)
     transmittance = _mean_transmittance(
-        field, positions, lambda rng: mi.Vector3f(*(float(c) for c in to_light)), samples, seed, first
+        field, positions, lambda rng: opaque(mi.Vector3f, to_light), samples, seed, first
     )
     e = np.broadcast_to(np.asarray(irradiance, float), (3,))
     return transmittance[:, None] * e[None, :] / (4.0 * np.pi)  # Eq. 4.22

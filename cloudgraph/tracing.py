@@ -32,6 +32,13 @@ def linear_texture(values: np.ndarray):
     return mi.Texture3f(tensor, filter_mode=dr.FilterMode.Linear, wrap_mode=dr.WrapMode.Clamp)
 
 
+def opaque(kind, values):
+    """A Dr.Jit vector or colour of ``values`` that kernels read as a parameter, not a literal:
+    a kernel that differs only in it (a new light's direction or colour: a relight) compiles
+    once."""
+    return dr.opaque(kind, tuple(float(c) for c in np.ravel(values)))
+
+
 def colour_texture(values: np.ndarray):
     """:func:`linear_texture` of (nz, ny, nx, 3) RGB values, of one channel where the three are
     the same (a grey medium lit by white light: a third of the lookups; :func:`colour_at`)."""
