@@ -267,6 +267,32 @@ def test_new_intensities_re_mix_the_cache_with_no_new_kernel(two_suns, estimator
         r.render(scene.camera, 4, 0, estimator, Lights.of(scenes["sun"]))
 
 
+def test_a_new_lights_direct_light_and_light_march_compile_no_new_kernel(variant):
+    # A relight runs the bake's kernels for a new light: its direction and colour are kernel
+    # parameters, not literals (tracing.opaque), so only the first light compiles them
+    from cloudgraph.build import GraphBuilder
+    from cloudgraph.field import field_chunk
+    from cloudgraph.lighting import direct_radiance
+    from cloudgraph.tracing import towards_light
+
+    volume = sphere_volume(16)
+    builder = GraphBuilder(volume, 0.5, build_params(volume, 0.5, "draft"))
+    points = np.random.default_rng(0).random((256, 3)).astype(np.float32) * volume.world_bbox()[1]
+
+    def bake_kernels(direction, irradiance):
+        d = np.asarray(direction, float) / np.linalg.norm(direction)
+        lit = direct_radiance(builder.field, points, d, irradiance, samples=4)
+        inputs = {"points": points, "to_light": towards_light(d), "step": np.array([0.25])}
+        return lit, field_chunk(builder, "field_tau", 0, inputs)[1]
+
+    bake_kernels([0.1, 0.2, -0.9], 1.0)  # (the first launch also evaluates the medium's pending arrays)
+    (first, second), new = kernels_compiled_by_the_second(
+        lambda: bake_kernels(SUN["direction"], 1.0), lambda: bake_kernels(SUN2["direction"], [0.5, 0.4, 0.3])
+    )
+    assert not new, f"kernels compiled for a new light: {new}"
+    assert np.abs(first[1] - second[1]).mean() > 0.05 * first[1].mean()  # the light did move
+
+
 # ------------------------------------------------------------------ against volpath
 
 
