@@ -13,12 +13,9 @@ refined 256² frame's speed-up over it. No reference: the references' rows are
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
 
-import numpy as np
-
-from .harness import _scene, bench_views
+from .harness import _scene, bench_views, timed_frames
 from .report import machine, row_md, table, write_results
 
 SCENES = ["sphere", "noise", "smoke1", "blender", "holdout", "dense", "thick", "holdout_thick"]
@@ -39,13 +36,8 @@ VOLPATH_COLUMNS = ["volpath_1spp_256_ms", "vs_volpath_1spp"]
 
 
 def _ms(render, repeats: int = 5) -> float:
-    render()  # (warm)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        render()
-        times.append(time.perf_counter() - t0)
-    return round(1000 * float(np.median(times)), 1)
+    """Warm milliseconds of ``render()``, the median of ``repeats`` (harness.timed_frames)."""
+    return round(1000 * timed_frames(lambda seed: render(), repeats)[0], 1)
 
 
 def run(scenes, out_dir: Path, quality: str = "default", volpath: bool = False) -> list[dict]:

@@ -345,8 +345,7 @@ def walk_ms(medium, G_tex, tau, points: np.ndarray, inputs: dict, seed: int) -> 
     # Projected per point: the sums over a point's k consecutive walks
     frame = light_frame(to_light)
     local = [dr.dot(w, opaque(mi.Vector3f, e)) for e in frame]
-    inv = np.where(E > 0, 1.0 / np.where(E > 0, E, 1.0), 0.0) / 3.0
-    inv = opaque(mi.Color3f, inv)
+    inv = opaque(mi.Color3f, np.where(E > 0, 1.0 / np.where(E > 0, E, 1.0), 0.0) / 3.0)
     unit = weight.x * inv[0] + weight.y * inv[1] + weight.z * inv[2]
     sums = [dr.block_sum(v, k) for v in (weight.x, weight.y, weight.z)]
     sums += [dr.block_sum(unit * b, k) for b in shape_basis(*local)]

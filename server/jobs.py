@@ -211,7 +211,8 @@ def worker_health(queue: Queue, settings: Settings) -> tuple[int, int]:
 #: lost writes none) and at the client. It polled before, every 5 ms growing to 50: a warm re-mix
 #: (the worker's render 31 ms) was seen ending up to 12 ms late.
 WAIT_SLICE_MS = 100
-_ENDED = (JobStatus.finished, JobStatus.failed, JobStatus.canceled)
+#: The statuses a job ends in.
+TERMINAL = (JobStatus.finished, JobStatus.failed, JobStatus.canceled)
 
 
 async def await_job(job: Job, timeout: float, request) -> JobStatus:
@@ -225,7 +226,7 @@ async def await_job(job: Job, timeout: float, request) -> JobStatus:
     while True:
         await run_in_threadpool(job.refresh)
         st = status_of(job)
-        if st in _ENDED or time.monotonic() > end:
+        if st in TERMINAL or time.monotonic() > end:
             return st
         if await request.is_disconnected():
             await run_in_threadpool(cancel, job.connection, job)

@@ -77,6 +77,7 @@ from ..tracing import (
     exponential_segment,
     jit_rng,
     linear_texture,
+    opaque,
     power_heuristic,
     ratio_tracking,
     sample_collision,
@@ -196,7 +197,7 @@ class FieldTextures:
         SHAPE_TERMS (between grid points the sum interpolates as the terms do, to the change of
         d across a texel). One small kernel per camera, the eye opaque: a new camera compiles
         nothing."""
-        eye = dr.opaque(mi.Point3f, tuple(float(c) for c in eye))
+        eye = opaque(mi.Point3f, eye)
         sums = []
         for view, frame, tex in zip(self.shape, self.frame, self.view_sum or self.shape, strict=True):
             if view is None:
@@ -427,8 +428,7 @@ class GraphIntegrator(mi.SamplingIntegrator):
         taus = [self._tau_light(k, pu, active) for k in range(len(self.to_light))]
         L_ms = mi.Color3f(0.0)
         if f.ms is not None:  # the sky's and the maps'
-            ms = f.ms.eval(pu, active)
-            L_ms += mi.Color3f(ms[0], ms[1], ms[2])
+            L_ms += colour_at(f.ms, pu, active)
         power, limit = f.ms_light
         for k, tex in enumerate(f.sun_ms):  # each sun's, times its light factor (unrolled)
             sun = colour_at(tex, pu, active) * (self.irradiance[k] if f.unit else 1.0)

@@ -13,11 +13,10 @@ from cloudgraph_service.errors import shown
 
 from ..deps import RedisDep
 from ..errors import error_responses
-from ..jobs import cancel, describe, fetch
-from ..schemas import JobPublic, JobStatus
+from ..jobs import TERMINAL, cancel, describe, fetch
+from ..schemas import JobPublic
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])
-TERMINAL = (JobStatus.finished, JobStatus.failed, JobStatus.canceled)
 
 
 def _job(redis, job_id: str):
