@@ -294,11 +294,14 @@ def bake_field(
     light_depths()
     progress("field", 0.6)
     t_tau = time.perf_counter() - t0
-    majorant = block_majorant(fp.sigma_t)
+    # (sigma_t's arrays depend on the medium alone: made once for a grid's points, which a
+    # relight in this process reuses: precompute._KEPT)
+    majorant = _once(fp.sigma_t, block_majorant)
     tau_light = taus[0] if taus else np.zeros_like(fp.sigma_t)
     packed = {
-        name: pack_array(name, a)
-        for name, a in (("sigma_t", fp.sigma_t), ("tau_light", tau_light), ("majorant", majorant))
+        "sigma_t": _once(fp.sigma_t, _packed, "sigma_t"),
+        "tau_light": pack_array("tau_light", tau_light),
+        "majorant": _once(majorant, _packed, "majorant"),
     }
     t0 = time.perf_counter()
     width = [3 + len(SHAPE_DEGREES) if c in walked else 3 for c in range(len(gathered))]
@@ -407,9 +410,9 @@ def field_chunk(builder, stage: str, index: int, inputs: dict) -> tuple[np.ndarr
         tau = _optical_depth(medium, to_jit(mi.Point3f, q), to_light, step)
         values = np.array(tau, np.float32)[:, None]
     else:
-        G_tex = _texture(inputs["G"], g_texture)
+        G_tex = _once(inputs["G"], g_texture)
         power = float(inputs["tau_power"][0]) if "tau" in inputs else 0.0
-        tau_tex = _texture(inputs["tau"], depth_texture, power) if "tau" in inputs else None
+        tau_tex = _once(inputs["tau"], depth_texture, power) if "tau" in inputs else None
         if "lobes" in inputs:
             values = walk_ms(medium, G_tex, tau_tex, q, inputs, seed=a)
         else:
@@ -423,22 +426,26 @@ def field_chunk(builder, stage: str, index: int, inputs: dict) -> tuple[np.ndarr
     return np.array([a]), values
 
 
-#: The textures that ``field_ms`` chunks read, by the input array they were made from: the chunks
-#: of one gather share their inputs' arrays (in this process and on a Dask worker alike), and
-#: making a field-sized texture took longer than marching a chunk (smoke1: 16 chunks, 1.6 s of
-#: the bake's 4.3 s). An entry goes with its array.
-_TEXTURES: dict = {}
-_TEXTURES_LOCK = threading.Lock()
+#: What is made from an input array once while it lives (:func:`_once`): the textures that
+#: ``field_ms`` chunks read (the chunks of one gather share their inputs' arrays, in this process
+#: and on a Dask worker alike, and making a field-sized texture took longer than marching a
+#: chunk: smoke1, 16 chunks, 1.6 s of the bake's 4.3 s), and sigma_t's packed arrays.
+_ONCE: dict = {}
+_ONCE_LOCK = threading.Lock()
 
 
-def _texture(values: np.ndarray, make, *args):
+def _once(values: np.ndarray, make, *args):
     """``make(values, *args)``, made once per array object while it lives."""
     key = (id(values), make, args)
-    with _TEXTURES_LOCK:  # (a chunk on another thread waits for the texture, not makes it again)
-        if key not in _TEXTURES:
-            _TEXTURES[key] = make(values, *args)
-            weakref.finalize(values, _TEXTURES.pop, key, None)
-        return _TEXTURES[key]
+    with _ONCE_LOCK:  # (a chunk on another thread waits for the texture, not makes it again)
+        if key not in _ONCE:
+            _ONCE[key] = make(values, *args)
+            weakref.finalize(values, _ONCE.pop, key, None)
+        return _ONCE[key]
+
+
+def _packed(values: np.ndarray, name: str):
+    return pack_array(name, values)
 
 
 def field_chunks(stage: str, inputs: dict) -> int:

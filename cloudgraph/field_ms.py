@@ -196,7 +196,7 @@ def smooth(values: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
 def g_texture(G) -> mi.Texture3f:
     """The texture of a grid of G = albedo L' (nz, ny, nx, 3): G^G_POWER, trilinear; of one
     channel where the three are the same (tracing.colour_texture)."""
-    return colour_texture(np.maximum(np.asarray(G, np.float32), 0.0) ** np.float32(G_POWER))
+    return colour_texture(np.asarray(G, np.float32), lambda g: np.maximum(g, 0.0) ** np.float32(G_POWER))
 
 
 def g_at(G_tex, pu, mask=True) -> mi.Color3f:

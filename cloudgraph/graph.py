@@ -150,6 +150,10 @@ class Transitions:
         self.C, self.S, self.D, self.Q, self.shape = C, S, D, Q, C.shape
         self.absorption = absorption
 
+    def with_albedo(self, albedo) -> Transitions:
+        """The same operator for x of ``albedo`` (scalar or per column; the matrices shared)."""
+        return Transitions(self.C, self.S, self.D, self.Q, 1.0 - np.asarray(albedo, np.float64))
+
     def __matmul__(self, x: np.ndarray) -> np.ndarray:
         return self.C @ x + self.correction(x)
 

@@ -20,6 +20,7 @@ precompute can be spread over workers and merged into the same bytes.
 
 from __future__ import annotations
 
+import threading
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -32,6 +33,7 @@ from .build import GraphBuilder
 from .graph import Graph
 from .graph_file import graph_file
 from .spatial import node_bins
+from .tracing import new_scope
 
 
 class Stage(NamedTuple):
@@ -110,7 +112,16 @@ def run_chunk(builder: GraphBuilder, stage: str, index: int, inputs: dict | None
 def local_chunks(builder: GraphBuilder, stage: str, inputs: dict | None = None):
     """Runs a stage's chunks in this process (the default ``chunks`` of a precompute), in order,
     on threads while the caller merges the ones before: tracing and reducing chunks (Dr.Jit,
-    numpy sorts) overlaps merging."""
+    numpy sorts) overlaps merging. A late stage's chunks (:data:`LATE_STAGES`) start at once, on
+    threads of their own, in the order they were put out: the field's light march runs while
+    the graph is read or built and the transport solved, as a worker that shares a precompute
+    runs it (smoke1: a relight 3.5 -> 2.9 s)."""
+    if stage in LATE_STAGES:
+        return _Ahead(builder, stage, inputs)
+    return _in_order(builder, stage, inputs)
+
+
+def _in_order(builder: GraphBuilder, stage: str, inputs: dict | None):
     n = n_chunks(builder, stage, inputs)
     with ThreadPoolExecutor(LOCAL_THREADS) as pool:
         ahead = deque(pool.submit(run_chunk, builder, stage, i, inputs) for i in range(min(n, LOCAL_THREADS)))
@@ -119,3 +130,38 @@ def local_chunks(builder: GraphBuilder, stage: str, inputs: dict | None = None):
             if i + LOCAL_THREADS < n:
                 ahead.append(pool.submit(run_chunk, builder, stage, i + LOCAL_THREADS, inputs))
             yield result
+
+
+_LATE_POOL: ThreadPoolExecutor | None = None
+_LATE_LOCK = threading.Lock()
+
+
+def _late_chunk(builder: GraphBuilder, stage: str, index: int, inputs: dict | None) -> tuple:
+    new_scope()  # (the late threads live on: the builder's arrays may be newer than they are)
+    return run_chunk(builder, stage, index, inputs)
+
+
+class _Ahead:
+    """A late stage's chunks, all put out on the process's late threads when made; iterated, their
+    results in order. Dropped before the end (a cancelled precompute), the chunks not yet started
+    are taken back."""
+
+    def __init__(self, builder: GraphBuilder, stage: str, inputs: dict | None):
+        global _LATE_POOL
+        with _LATE_LOCK:
+            if _LATE_POOL is None:
+                _LATE_POOL = ThreadPoolExecutor(LOCAL_THREADS, thread_name_prefix="late-chunks")
+        n = n_chunks(builder, stage, inputs)
+        self._futures = deque(_LATE_POOL.submit(_late_chunk, builder, stage, i, inputs) for i in range(n))
+
+    def __iter__(self):
+        return self
+
+    def __next__(self) -> tuple:
+        if not self._futures:
+            raise StopIteration
+        return self._futures.popleft().result()
+
+    def __del__(self):
+        for future in self._futures:
+            future.cancel()

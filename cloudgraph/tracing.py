@@ -32,6 +32,13 @@ def linear_texture(values: np.ndarray):
     return mi.Texture3f(tensor, filter_mode=dr.FilterMode.Linear, wrap_mode=dr.WrapMode.Clamp)
 
 
+def new_scope() -> None:
+    """Starts a new Dr.Jit scope on this thread: a thread that lives on between uses (a pool's)
+    must, before it reads arrays that another thread made since (the builder's medium, a light's
+    values), or Dr.Jit refuses to order the two (``jitc_assemble``)."""
+    dr.detail.new_scope(dr.backend_v(mi.Float))
+
+
 def opaque(kind, values):
     """A Dr.Jit vector or colour of ``values`` that kernels read as a parameter, not a literal:
     a kernel that differs only in it (a new light's direction or colour: a relight) compiles
@@ -39,11 +46,13 @@ def opaque(kind, values):
     return dr.opaque(kind, tuple(float(c) for c in np.ravel(values)))
 
 
-def colour_texture(values: np.ndarray):
-    """:func:`linear_texture` of (nz, ny, nx, 3) RGB values, of one channel where the three are
-    the same (a grey medium lit by white light: a third of the lookups; :func:`colour_at`)."""
+def colour_texture(values: np.ndarray, transform=None):
+    """:func:`linear_texture` of (nz, ny, nx, 3) RGB values (``transform``, elementwise, applied
+    first), of one channel where the three are the same (a grey medium lit by white light: a
+    third of the lookups, and of the transform's work; :func:`colour_at`)."""
     grey = all(np.array_equal(values[..., 0], values[..., c]) for c in (1, 2))
-    return linear_texture(np.ascontiguousarray(values[..., :1]) if grey else values)
+    values = np.ascontiguousarray(values[..., :1]) if grey else values
+    return linear_texture(values if transform is None else transform(values))
 
 
 def colour_at(texture, pu, active=True):

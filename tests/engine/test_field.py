@@ -357,6 +357,47 @@ def test_a_new_light_relights_the_field_without_a_new_graph(variant, tmp_path):
     assert b.stats["field_s"] > 0 and b.stats["lighting_s"] >= 0
 
 
+def test_a_relight_in_the_same_process_reuses_what_is_not_the_light_s(variant, tmp_path, monkeypatch):
+    # A worker relights in the process that made the cache (precompute._KEPT): the graph, its
+    # transitions and the field's grid points are not made again, and the cache is the one that
+    # a process of its own makes, to the byte (a new albedo too: it enters the transitions last).
+    import cloudgraph.field_grid as field_grid
+    import cloudgraph.graph as graph_module
+    from cloudgraph.procedural import noise_volume
+
+    volume = noise_volume(24, seed=5)
+    scene = medium_scene(volume, 2.0 / float(volume.density.max() * volume.voxel_size.max()))
+    store = CacheStore(tmp_path / "kept")
+    precompute(scene, volume, "draft", store)
+    light = scene.light.model_copy(update={"direction": (-LIGHT[0], LIGHT[1], -LIGHT[2])})
+    medium = scene.medium.model_copy(update={"albedo": 0.8})
+    relit = scene.model_copy(update={"light": light, "medium": medium})
+    made = []
+    for module, name in ((precompute_module, "read_graph"), (graph_module.Graph, "transitions")):
+        monkeypatch.setattr(module, name, lambda *a, name=name, **k: made.append(name))
+    monkeypatch.setattr(field_grid.FieldPoints, "of", lambda *a: made.append("points"))
+    kept = precompute(relit, volume, "draft", store)
+    assert made == [] and kept.stats["graph_reused"]
+    monkeypatch.undo()
+    # (the albedo, last: as the transitions made with it)
+    from cloudgraph.graph_file import read_graph
+    from cloudgraph.params import GRADIENT
+
+    graph = read_graph(store.graph_path(kept.keys["graph_key"]))
+    sigma_t, x = np.full(graph.n_nodes, 3.0), np.random.default_rng(0).random((graph.n_nodes, 3))
+    T = graph.transitions(GRADIENT, 1, sigma_t)
+    with_albedo = graph.transitions(GRADIENT, 1, sigma_t, [0.8, 0.9, 1.0]) @ x
+    np.testing.assert_array_equal(T.with_albedo([0.8, 0.9, 1.0]) @ x, with_albedo)
+    assert not np.array_equal(T @ x, with_albedo)
+    monkeypatch.setattr(precompute_module, "_KEPT", {})  # (a process of its own)
+    again = CacheStore(tmp_path / "fresh")
+    fresh = precompute(relit, volume, "draft", again)
+    assert fresh.keys == kept.keys
+    for path in ("radiance_path", "field_path"):
+        a, b = (getattr(s, path)(kept.keys["radiance_key"]).read_bytes() for s in (store, again))
+        assert a == b
+
+
 def test_a_field_render_of_a_cached_scene_never_reads_the_graph(sphere, monkeypatch):
     store = sphere["cache"].store
     again = precompute(sphere["scene"], sphere["volume"], "draft", store)

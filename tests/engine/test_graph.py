@@ -681,6 +681,32 @@ def test_the_graph_is_the_same_however_the_work_is_cut(variant, monkeypatch):
         assert x.dtype == y.dtype and x.tobytes() == y.tobytes()
 
 
+def test_a_late_stage_s_chunks_start_before_they_are_asked_for(variant, monkeypatch):
+    # The field's light march, the node bins and the graph file's bytes are wanted late
+    # (stages.LATE_STAGES): in this process they start when put out, as on a worker that shares
+    # the precompute, and run while the graph is built or read and the transport solved. Other
+    # stages' chunks run when asked for, a few ahead.
+    import threading
+
+    import cloudgraph.stages as stages_module
+
+    started = threading.Event()
+
+    def chunk(builder, index, inputs):
+        started.set()
+        return (np.array([index]),)
+
+    for name in ("bins", "lighting"):
+        monkeypatch.setitem(stages_module.STAGES, name, stages_module.Stage(lambda b, i: 3, chunk))
+    late = stages_module.local_chunks(None, "bins", {})
+    assert started.wait(10)  # (none asked for yet)
+    assert [int(r[0][0]) for r in late] == [0, 1, 2]
+    started.clear()
+    lazy = stages_module.local_chunks(None, "lighting", {})
+    assert not started.wait(0.5)
+    assert [int(r[0][0]) for r in lazy] == [0, 1, 2] and started.is_set()
+
+
 def test_the_node_table_holds_what_all_the_samples_at_once_give():
     # Chunks of random collisions and samples, reduced and merged in shuffled order, against the
     # same sums, lowest priorities and edge counts computed from all of them at once.
