@@ -125,6 +125,26 @@ def march_light(builder, fp: FieldPoints, directions, chunks) -> list:
     ]
 
 
+def light_depths(fp: FieldPoints, marched: list) -> tuple[list, float]:
+    """Each sun's tau_light grid from its light march (:func:`march_light`'s results), and the
+    power of T that its texture interpolates: at twice the field's resolution where that fits
+    (light_depth.fine_depth), else on the field's grid fitted to the sub-voxel samples
+    (light_depth.fit_depth). Numpy alone: a precompute makes them on a thread of their own
+    while it solves the transport."""
+    nx, ny, nz = fp.shape
+    fine = fine_shape((nz, ny, nx), len(marched)) is not None
+    taus = []
+    for results in marched:  # (a sun's: the grid points', then the sub-voxel samples')
+        tau = placed(results, len(fp.points) + len(fp.sub), 1)[:, 0]
+        tau_grid = _scatter(fp.near, tau[: len(fp.points)], (nz, ny, nx))
+        samples = tau[len(fp.points) :]
+        if fine:
+            taus.append(fine_depth(tau_grid, fp.near.reshape(nz, ny, nx), fp.sub_coords, samples))
+        else:
+            taus.append(fit_depth(tau_grid, fp.sigma_t, fp.sub_centres, samples))
+    return taus, FINE_POWER if fine else TAU_POWER
+
+
 def bake_field(
     builder,
     fp: FieldPoints,
@@ -134,7 +154,7 @@ def bake_field(
     lights: Lights,
     radiance_key: str,
     chunks,
-    marched=None,
+    depths=None,
     bins=None,
     progress=None,
     phase=None,
@@ -154,7 +174,8 @@ def bake_field(
             tau_light.
         albedo: (3,); lights: the scene's :class:`~cloudgraph.lights.Lights`.
         chunks: runs the marches' chunks (:func:`field_chunk`; stages.py), as in ``build_graph``.
-        marched: the light marches' results (:func:`march_light`), if already put out.
+        depths: each sun's tau_light and the power its texture reads (:func:`light_depths`), if
+            made (a precompute makes them while the transport runs); else marched and made here.
         bins: the graph's nodes binned (:func:`~cloudgraph.spatial.node_bins`), if made.
         progress: ``progress("field", fraction)`` is called between the bake's parts (a caller's
             cancel raises from it).
@@ -175,7 +196,12 @@ def bake_field(
     u2w = np.asarray(volume.unit_to_world, float)
     shape, near, points, voxel = fp.shape, fp.near, fp.points, fp.voxel
     nx, ny, nz = shape
-    marched = marched if marched is not None else march_light(builder, fp, lights.directions, chunks)
+    # single scattering: the optical depth to each sun (made while the transport ran, or now)
+    t0 = time.perf_counter()
+    if depths is None:
+        depths = light_depths(fp, march_light(builder, fp, lights.directions, chunks))
+    taus, tau_power = depths
+    t_tau = time.perf_counter() - t0
 
     # Multiple scattering, as ``gather`` computes it but on the grid: one more flight from the
     # grid point, to p'', where the graph's albedo L' stands in for the rest (Eq. 4.25):
@@ -228,32 +254,6 @@ def bake_field(
         k += 1
     q = to_world(u2w, unit_points(ms_shape)[ms_near]).astype(np.float32)
     step = np.array([MS_STEP * voxel])
-    taus = []
-
-    # optical depth to each sun: at twice the grid's resolution where that fits, else fitted to
-    # the sub-voxel samples on the grid (light_depth.py), read as T^tau_power between points
-    fine = fine_shape((nz, ny, nx), len(marched)) is not None
-    tau_power = FINE_POWER if fine else TAU_POWER
-
-    raw = {}
-
-    def marched_tau(c: int) -> np.ndarray:  # sun c's: the points', then the sub-voxel samples'
-        if c not in raw:
-            raw[c] = placed(marched[c], len(points) + len(fp.sub), 1)[:, 0]
-        return raw[c]
-
-    def light_depths() -> list:  # placed once
-        if not taus:
-            for c in range(len(marched)):
-                tau = marched_tau(c)
-                tau_grid = _scatter(near, tau[: len(points)], (nz, ny, nx))
-                samples = tau[len(points) :]
-                if fine:
-                    taus.append(fine_depth(tau_grid, near.reshape(nz, ny, nx), fp.sub_coords, samples))
-                else:
-                    taus.append(fit_depth(tau_grid, fp.sigma_t, fp.sub_centres, samples))
-        return taus
-
     gathered, walked = [], []
     for c, lk in enumerate(looked):
         G = placed(lk, len(points), 3)
@@ -264,7 +264,7 @@ def bake_field(
             # reads it: baked into G at the grid points, its steep fall below a lit surface
             # read bright between them (the dense cloud back-lit: field 1.2 % over gather, 0.5 %)
             inputs["sun"] = np.asarray(albedo, np.float32) * lights.cached[c] / np.float32(4.0 * np.pi)
-            inputs["tau"], inputs["tau_power"] = light_depths()[c], np.array([tau_power])
+            inputs["tau"], inputs["tau_power"] = taus[c], np.array([tau_power])
         if lights.kind(c) == "envmap":  # what escapes sees the map: the file, read where it runs
             inputs["envmap"] = np.array([lights.envmaps[c - lights.count + len(lights.envmaps)]])
         if lobes is not None and lights.kind(c) == "directional":  # a sun's, by walks
@@ -278,7 +278,7 @@ def bake_field(
                 # (x's own event is the camera's: the walks take one fewer)
                 "bounces": np.array([memory_bounces(phase) - 1 if max_depth < 0 else max_depth - 1]),
                 "tail": np.array([int(max_depth < 0)]),
-                "tau": light_depths()[c],  # (a sun's component c is directional light c)
+                "tau": taus[c],  # (a sun's component c is directional light c)
                 "tau_power": np.array([tau_power]),
                 "forward": np.array([forward]),
                 "walks": np.array([walks_per_point(len(q), MS_MAX_POINTS)]),
@@ -288,12 +288,9 @@ def bake_field(
     progress("field", 0.2)
     t_ms = time.perf_counter() - t0
 
-    # While the gather's chunks run: single scattering placed, and the arrays that do not depend
-    # on the gather packed (most of the file's bytes; precompute.py encodes it at the end)
-    t0 = time.perf_counter()
-    light_depths()
+    # While the gather's chunks run: the arrays that do not depend on the gather packed (most of
+    # the file's bytes; precompute.py encodes it at the end)
     progress("field", 0.6)
-    t_tau = time.perf_counter() - t0
     # (sigma_t's arrays depend on the medium alone: made once for a grid's points, which a
     # relight in this process reuses: precompute._KEPT)
     majorant = _once(fp.sigma_t, block_majorant)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,7 +23,7 @@ from .build import GraphBuilder, build_graph
 from .cache import CacheStore, cache_keys
 from .chunks import placed
 from .errors import CacheError
-from .field import bake_field, march_light
+from .field import bake_field, light_depths, march_light
 from .field_file import RadianceField, combined
 from .field_grid import FieldPoints
 from .graph import Graph
@@ -52,6 +53,11 @@ log = logging.getLogger(__name__)
 #: points, by the graph's key (content-addressed: one key, one graph) and the field medium's
 #: density scale. One graph at a time (smoke1: about 150 MB; a relight 3.0 -> 2.3 s).
 _KEPT: dict = {}
+
+
+#: The thread that makes the suns' tau_light (field.light_depths: numpy, 0.4 s on smoke1) from the
+#: light march while the graph is read or built and the transport solved.
+_DEPTHS = ThreadPoolExecutor(1, thread_name_prefix="field-depths")
 
 
 def _kept(gkey: str, what: tuple, make):
@@ -182,7 +188,7 @@ def precompute(
 
     found = read_radiance(store.radiance_path(rkey))
     found_field = store.load_field(rkey)
-    graph, graph_reused, builder, lit, t_light, marched = None, True, None, None, 0.0, None
+    graph, graph_reused, builder, lit, t_light, depths = None, True, None, None, 0.0, None
     points = None  # the field's grid points, made once when the field needs them
 
     def field_points() -> FieldPoints:
@@ -210,9 +216,11 @@ def precompute(
             # idle (stages.LATE_STAGES): before the graph is read, or right after a new
             # graph's light paths (helpers start on those while this worker finds the field's
             # points)
-            nonlocal marched
-            if marched is None and found_field is None:
+            nonlocal depths
+            if depths is None and found_field is None:
                 marched = march_light(field_builder, field_points(), lights.directions, field_chunks)
+                # ... and each sun's tau_light made from it on a thread of its own, as it comes in
+                depths = _DEPTHS.submit(light_depths, field_points(), marched)
 
         if store.graph_path(gkey).is_file():
             march()
@@ -302,7 +310,7 @@ def precompute(
             lights,
             rkey,
             field_chunks,
-            marched,
+            depths.result() if depths is not None else None,
             next(iter(bins)),
             lambda stage, f: progress(stage, 0.95 + 0.05 * f),
             phase=scene.medium.phase,
