@@ -50,14 +50,19 @@ log = logging.getLogger(__name__)
 #: What a precompute keeps of its graph for the next one in this process (a relight: a new light
 #: on the same graph, which a worker runs in the same process): the graph as stored, its
 #: transition operator (the albedo enters last: Transitions.with_albedo) and the field's grid
-#: points, by the graph's key (content-addressed: one key, one graph) and the field medium's
-#: density scale. One graph at a time (smoke1: about 150 MB; a relight 3.0 -> 2.3 s).
+#: points and the nodes' bins, by the graph's key (content-addressed: one key, one graph) and the
+#: field medium's density scale. One graph at a time (smoke1: about 150 MB; a relight 3.0 -> 2.3 s).
 _KEPT: dict = {}
 
 
 #: The thread that makes the suns' tau_light (field.light_depths: numpy, 0.4 s on smoke1) from the
 #: light march while the graph is read or built and the transport solved.
 _DEPTHS = ThreadPoolExecutor(1, thread_name_prefix="field-depths")
+
+
+def _known(gkey: str, what: tuple):
+    """What :func:`_kept` holds of graph ``gkey`` (None: nothing yet)."""
+    return _KEPT.get(what) if _KEPT.get("graph_key") == gkey else None
 
 
 def _kept(gkey: str, what: tuple, make):
@@ -245,8 +250,8 @@ def precompute(
         light(graph.positions)
     # The field's node bins need the graph only: put out now, for a worker that shares this
     # precompute to make while this one solves the transport (a late stage)
-    bins = None
-    if found_field is None:
+    bins = None  # (kept from a precompute of this graph before, or put out now)
+    if found_field is None and _known(gkey, ("bins",)) is None:
         bins = chunks(builder, "bins", {"positions": graph.positions, "search_radius": graph.search_radius})
     if not graph_reused:
         # The file's bytes (packed and compressed: 0.6-0.9 s on blender) are a late stage too,
@@ -311,7 +316,7 @@ def precompute(
             rkey,
             field_chunks,
             depths.result() if depths is not None else None,
-            next(iter(bins)),
+            _kept(gkey, ("bins",), lambda: next(iter(bins))),
             lambda stage, f: progress(stage, 0.95 + 0.05 * f),
             phase=scene.medium.phase,
             max_depth=scene.render.max_depth,

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+import scipy.sparse as sp
 
 from .tracing import to_jit
 
@@ -34,13 +35,15 @@ def node_bins(positions: np.ndarray, search_radius: np.ndarray, max_cells: int =
     iy = c0[node, 1] + (k // sx) % sy
     iz = c0[node, 2] + k // (sx * sy)
     cell_id = ix + np.int32(dims[0]) * (iy + np.int32(dims[1]) * iz)
-    order = np.argsort(cell_id, kind="stable")
-    n_cells = int(dims.prod())
-    start = np.zeros(n_cells + 1, np.int64)
-    np.cumsum(np.bincount(cell_id, minlength=n_cells), out=start[1:])
+    # The entries by cell, in the order made within a cell: a counting sort (a sparse matrix's
+    # rows, each entry its own column; a stable argsort took twice as long on blender's 6 M)
+    by_cell = sp.csr_matrix(
+        (node.astype(np.uint32), (cell_id, np.arange(len(cell_id), dtype=np.int32))),
+        shape=(int(dims.prod()), len(cell_id)),
+    )
     return (
-        start.astype(np.uint32),
-        node[order].astype(np.uint32),
+        by_cell.indptr.astype(np.uint32),
+        by_cell.data.astype(np.uint32),
         np.concatenate([lo, [cell], dims]).astype(float),
     )
 

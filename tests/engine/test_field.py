@@ -359,8 +359,9 @@ def test_a_new_light_relights_the_field_without_a_new_graph(variant, tmp_path):
 
 def test_a_relight_in_the_same_process_reuses_what_is_not_the_light_s(variant, tmp_path, monkeypatch):
     # A worker relights in the process that made the cache (precompute._KEPT): the graph, its
-    # transitions and the field's grid points are not made again, and the cache is the one that
-    # a process of its own makes, to the byte (a new albedo too: it enters the transitions last).
+    # transitions, the field's grid points and the nodes' bins are not made again, and the cache
+    # is the one that a process of its own makes, to the byte (a new albedo too: it enters the
+    # transitions last).
     import cloudgraph.field_grid as field_grid
     import cloudgraph.graph as graph_module
     from cloudgraph.procedural import noise_volume
@@ -373,7 +374,10 @@ def test_a_relight_in_the_same_process_reuses_what_is_not_the_light_s(variant, t
     medium = scene.medium.model_copy(update={"albedo": 0.8})
     relit = scene.model_copy(update={"light": light, "medium": medium})
     made = []
-    for module, name in ((precompute_module, "read_graph"), (graph_module.Graph, "transitions")):
+    import cloudgraph.stages as stages_module
+
+    unmade = (precompute_module, "read_graph"), (graph_module.Graph, "transitions")
+    for module, name in (*unmade, (stages_module, "node_bins")):
         monkeypatch.setattr(module, name, lambda *a, name=name, **k: made.append(name))
     monkeypatch.setattr(field_grid.FieldPoints, "of", lambda *a: made.append("points"))
     kept = precompute(relit, volume, "draft", store)

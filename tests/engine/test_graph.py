@@ -707,6 +707,26 @@ def test_a_late_stage_s_chunks_start_before_they_are_asked_for(variant, monkeypa
     assert [int(r[0][0]) for r in lazy] == [0, 1, 2] and started.is_set()
 
 
+def test_the_node_bins_list_each_cell_s_nodes_in_node_order():
+    # Cell c of the bins lists every node whose search ball's box meets it, in node order (the
+    # lookups sum a cell's nodes in that order: the field's bytes depend on it), against a
+    # brute force over all cells and nodes.
+    from cloudgraph.spatial import node_bins
+
+    rng = np.random.default_rng(4)
+    positions, ranges = rng.random((400, 3)) * 10.0, rng.uniform(0.2, 1.5, 400)
+    start, entries, grid = node_bins(positions, ranges)
+    lo, cell, dims = grid[:3], grid[3], grid[4:].astype(np.int64)
+    c0 = np.clip(np.floor((positions - ranges[:, None] - lo) / cell), 0, dims - 1)
+    c1 = np.clip(np.floor((positions + ranges[:, None] - lo) / cell), 0, dims - 1)
+    z, y, x = np.meshgrid(*(np.arange(n) for n in dims[::-1]), indexing="ij")
+    cells = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)  # (cell id order: x fastest)
+    meets = np.all((cells[:, None, :] >= c0[None]) & (cells[:, None, :] <= c1[None]), axis=2)
+    assert len(start) == len(cells) + 1 and meets.sum() == len(entries) > 400
+    for c in np.flatnonzero(meets.any(axis=1)):
+        np.testing.assert_array_equal(entries[start[c] : start[c + 1]], np.flatnonzero(meets[c]))
+
+
 def test_the_node_table_holds_what_all_the_samples_at_once_give():
     # Chunks of random collisions and samples, reduced and merged in shuffled order, against the
     # same sums, lowest priorities and edge counts computed from all of them at once.
