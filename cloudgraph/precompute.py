@@ -41,7 +41,7 @@ from .lights import Lights, component_scenes
 from .params import GRADIENT, LIGHTING, BuildParams, build_params, suns_apart
 from .scene import Scene
 from .stages import local_chunks
-from .tracing import cpu_threads
+from .tracing import cpu_threads, new_scope
 from .transport import transport
 from .volume import Volume
 
@@ -58,6 +58,14 @@ _KEPT: dict = {}
 #: The thread that makes the suns' tau_light (field.light_depths: numpy, 0.4 s on smoke1) from the
 #: light march while the graph is read or built and the transport solved.
 _DEPTHS = ThreadPoolExecutor(1, thread_name_prefix="field-depths")
+
+
+def _light_depths(fp: FieldPoints, marched: list) -> tuple[list, float]:
+    """field.light_depths on the thread of :data:`_DEPTHS`, which lives on: in a Dr.Jit scope of
+    its own (a chunk that it runs itself, where a Dask cluster was lost, reads the builder's
+    arrays)."""
+    new_scope()
+    return light_depths(fp, marched)
 
 
 def _known(gkey: str, what: tuple):
@@ -225,7 +233,7 @@ def precompute(
             if depths is None and found_field is None:
                 marched = march_light(field_builder, field_points(), lights.directions, field_chunks)
                 # ... and each sun's tau_light made from it on a thread of its own, as it comes in
-                depths = _DEPTHS.submit(light_depths, field_points(), marched)
+                depths = _DEPTHS.submit(_light_depths, field_points(), marched)
 
         if store.graph_path(gkey).is_file():
             march()

@@ -27,6 +27,7 @@ from distributed import Client, WorkerPlugin, as_completed
 
 from cloudgraph import stages
 from cloudgraph.build import GraphBuilder
+from cloudgraph.tracing import new_scope
 
 log = logging.getLogger("cloudgraph.dask")
 
@@ -66,9 +67,9 @@ _builder = lru_cache(maxsize=2)(GraphBuilder)
 
 def _chunk(index: int, volume, density_scale: float, params, stage: str, inputs):
     """Chunk ``index`` of ``stage``, on a Dask worker: in a Dr.Jit scope of its own, since the
-    builder's arrays may come from another of the worker's threads (``dr.detail.new_scope``)."""
+    builder's arrays may come from another of the worker's threads (tracing.new_scope)."""
     builder = _builder(volume, density_scale, params)
-    dr.detail.new_scope(dr.JitBackend.CUDA if mi.variant().startswith("cuda") else dr.JitBackend.LLVM)
+    new_scope()
     return stages.run_chunk(builder, stage, index, inputs)
 
 

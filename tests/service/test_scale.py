@@ -65,10 +65,12 @@ def cloud(variant, tmp_path_factory) -> dict:
 
 def _on_dask(cloud, address: str, store: Path, progress=None, **kwargs):
     """(the cache's bytes, its DaskChunks) of the cloud precomputed on the cluster at ``address``."""
+    import cloudgraph.precompute as precompute_module
     from cloudgraph.precompute import precompute
     from cloudgraph_service.dask_chunks import precompute_chunks
 
     store = CacheStore(store)
+    precompute_module._KEPT.clear()  # (as a process of its own: every stage on the cluster)
     with precompute_chunks(address, **kwargs) as chunks:
         cache = precompute(cloud["scene"], cloud["volume"], "draft", store, progress, chunks, n_paths=N_PATHS)
     return _files(store, cache), chunks
@@ -100,9 +102,10 @@ def test_the_cache_is_the_same_bytes_in_process_and_on_1_2_and_4_dask_workers(cl
 
 
 def test_a_dask_worker_sigkilled_mid_precompute_is_made_good_and_the_bytes_are_the_same(cloud, tmp_path):
-    """The worker killed holds a result not yet merged (the field's light march, put out at the
-    start and wanted at the end) and may be running a chunk: Dask computes both again elsewhere,
-    from the inputs and volume scattered to every worker."""
+    """The worker killed holds a result not yet merged (the graph file's bytes, a late stage put
+    out before the transport and wanted at the end; the light march's results are taken as they
+    come) and may be running a chunk of the bake: Dask computes them again elsewhere, from the
+    inputs and volume scattered to every worker."""
     from cloudgraph_service.dask_chunks import client
 
     with _local_cluster(2) as cluster:
@@ -110,23 +113,23 @@ def test_a_dask_worker_sigkilled_mid_precompute_is_made_good_and_the_bytes_are_t
         c.wait_for_workers(2, timeout=120)
         killed = {}
 
-        def progress(stage, fraction):  # in the reinforcement, or soon after
-            if stage not in ("reinforce", "lighting", "transport") or killed:
+        def progress(stage, fraction):  # in the bake
+            if stage != "field" or killed:
                 return
             pids = c.run(os.getpid)
             for worker, keys in c.has_what().items():
-                if any(str(k).startswith("field_tau") for k in keys):
+                if any(str(k).startswith("graph_file") for k in keys):
                     os.kill(pids[worker], signal.SIGKILL)
                     killed[worker] = pids[worker]
                     break
 
         with distributed.get_task_stream(c) as tasks:
             files, chunks = _on_dask(cloud, cluster.scheduler_address, tmp_path / "killed", progress)
-        assert killed, "no worker held the light march's result before the transport"
+        assert killed, "no worker held the graph file's bytes in the bake"
         assert files == cloud["bytes"]
         assert not chunks.lost
         again = [k for k, n in Counter(t["key"] for t in tasks.data).items() if n > 1]
-        assert any(k.startswith("field_tau") for k in again), again  # computed twice: lost, then redone
+        assert any(k.startswith("graph_file") for k in again), again  # computed twice: lost, then redone
         c.wait_for_workers(2, timeout=60)  # the nanny started a fresh worker process
         assert set(killed.values()).isdisjoint(c.run(os.getpid).values())
 
