@@ -145,6 +145,17 @@ def light_depths(fp: FieldPoints, marched: list) -> tuple[list, float]:
     return taus, FINE_POWER if fine else TAU_POWER
 
 
+def medium_arrays(fp: FieldPoints) -> tuple[np.ndarray, dict]:
+    """What the field file holds of the medium alone: sigma_t's block majorant, and sigma_t's and
+    the majorant's packed arrays. Made once for a grid's points (:func:`_once`): a precompute
+    makes them while the graph is built, and a relight in this process reuses them."""
+    majorant = _once(fp.sigma_t, block_majorant)
+    return majorant, {
+        "sigma_t": _once(fp.sigma_t, _packed, "sigma_t"),
+        "majorant": _once(majorant, _packed, "majorant"),
+    }
+
+
 def bake_field(
     builder,
     fp: FieldPoints,
@@ -291,14 +302,12 @@ def bake_field(
     # While the gather's chunks run: the arrays that do not depend on the gather packed (most of
     # the file's bytes; precompute.py encodes it at the end)
     progress("field", 0.6)
-    # (sigma_t's arrays depend on the medium alone: made once for a grid's points, which a
-    # relight in this process reuses: precompute._KEPT)
-    majorant = _once(fp.sigma_t, block_majorant)
+    majorant, medium = medium_arrays(fp)
     tau_light = taus[0] if taus else np.zeros_like(fp.sigma_t)
     packed = {
-        "sigma_t": _once(fp.sigma_t, _packed, "sigma_t"),
+        "sigma_t": medium["sigma_t"],
         "tau_light": pack_array("tau_light", tau_light),
-        "majorant": _once(majorant, _packed, "majorant"),
+        "majorant": medium["majorant"],
     }
     t0 = time.perf_counter()
     width = [3 + len(SHAPE_DEGREES) if c in walked else 3 for c in range(len(gathered))]

@@ -23,7 +23,7 @@ from .build import GraphBuilder, build_graph
 from .cache import CacheStore, cache_keys
 from .chunks import placed
 from .errors import CacheError
-from .field import bake_field, light_depths, march_light
+from .field import bake_field, light_depths, march_light, medium_arrays
 from .field_file import RadianceField, combined
 from .field_grid import FieldPoints
 from .graph import Graph
@@ -234,6 +234,7 @@ def precompute(
                 marched = march_light(field_builder, field_points(), lights.directions, field_chunks)
                 # ... and each sun's tau_light made from it on a thread of its own, as it comes in
                 depths = _DEPTHS.submit(_light_depths, field_points(), marched)
+                _DEPTHS.submit(medium_arrays, field_points())  # (then the file's arrays of sigma_t)
 
         if store.graph_path(gkey).is_file():
             march()
