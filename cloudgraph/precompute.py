@@ -51,12 +51,13 @@ log = logging.getLogger(__name__)
 #: on the same graph, which a worker runs in the same process): the graph as stored, its
 #: transition operator (the albedo enters last: Transitions.with_albedo) and the field's grid
 #: points and the nodes' bins, by the graph's key (content-addressed: one key, one graph) and the
-#: field medium's density scale. One graph at a time (smoke1: about 150 MB; a relight 3.0 -> 2.3 s).
+#: field medium's density scale. One graph at a time (smoke1: about 150 MB; a relight 3.6 -> 2.5 s).
 _KEPT: dict = {}
 
 
 #: The thread that makes the suns' tau_light (field.light_depths: numpy, 0.4 s on smoke1) from the
-#: light march while the graph is read or built and the transport solved.
+#: light march, then the file's arrays of the medium (field.medium_arrays), while the graph is
+#: read or built and the transport solved.
 _DEPTHS = ThreadPoolExecutor(1, thread_name_prefix="field-depths")
 
 
