@@ -20,7 +20,6 @@ precompute can be spread over workers and merged into the same bytes.
 
 from __future__ import annotations
 
-import threading
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -115,7 +114,7 @@ def local_chunks(builder: GraphBuilder, stage: str, inputs: dict | None = None):
     numpy sorts) overlaps merging. A late stage's chunks (:data:`LATE_STAGES`) start at once, on
     threads of their own, in the order they were put out: the field's light march runs while
     the graph is read or built and the transport solved, as a worker that shares a precompute
-    runs it (smoke1: a relight 3.5 -> 2.9 s)."""
+    runs it (smoke1: a first precompute 7.1 -> 5.8 s)."""
     if stage in LATE_STAGES:
         return _Ahead(builder, stage, inputs)
     return _in_order(builder, stage, inputs)
@@ -132,8 +131,8 @@ def _in_order(builder: GraphBuilder, stage: str, inputs: dict | None):
             yield result
 
 
-_LATE_POOL: ThreadPoolExecutor | None = None
-_LATE_LOCK = threading.Lock()
+#: The late stages' threads (started at their first chunk)
+_LATE_POOL = ThreadPoolExecutor(LOCAL_THREADS, thread_name_prefix="late-chunks")
 
 
 def _late_chunk(builder: GraphBuilder, stage: str, index: int, inputs: dict | None) -> tuple:
@@ -147,10 +146,6 @@ class _Ahead:
     are taken back."""
 
     def __init__(self, builder: GraphBuilder, stage: str, inputs: dict | None):
-        global _LATE_POOL
-        with _LATE_LOCK:
-            if _LATE_POOL is None:
-                _LATE_POOL = ThreadPoolExecutor(LOCAL_THREADS, thread_name_prefix="late-chunks")
         n = n_chunks(builder, stage, inputs)
         self._futures = deque(_LATE_POOL.submit(_late_chunk, builder, stage, i, inputs) for i in range(n))
 
