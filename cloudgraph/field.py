@@ -36,12 +36,11 @@ import weakref
 import drjit as dr
 import mitsuba as mi
 import numpy as np
-from scipy.ndimage import maximum_filter
 from scipy.spatial import cKDTree
 
 from .chunks import placed
 from .field_file import RadianceField, component_names, pack_array, shape_name
-from .field_grid import FieldPoints, to_world, unit_points
+from .field_grid import FieldPoints, MsGrid
 from .field_ms import (
     MS_LIGHT_RANGE,
     MS_STEP,
@@ -143,6 +142,19 @@ def light_depths(fp: FieldPoints, marched: list) -> tuple[list, float]:
         else:
             taus.append(fit_depth(tau_grid, fp.sigma_t, fp.sub_centres, samples))
     return taus, FINE_POWER if fine else TAU_POWER
+
+
+def ms_grid(fp: FieldPoints, walked: bool) -> MsGrid:
+    """The grid the bake gathers L_ms on (``walked``: each sun's L_ms by walks, an anisotropic
+    phase, on a grid of up to MS_WALK_POINTS points; else MS_MAX_POINTS), made once for ``fp``
+    (FieldPoints.ms_grid): a precompute makes it while the graph is built."""
+    return fp.ms_grid(MS_COARSEN, MS_WALK_POINTS if walked else MS_MAX_POINTS)
+
+
+def packed_depth(tau: np.ndarray):
+    """The field file's packed array of a sun's tau_light, made once for the array
+    (:func:`_once`): a precompute packs it on the thread that made it, while the transport runs."""
+    return _once(tau, _packed, "tau_light")
 
 
 def medium_arrays(fp: FieldPoints) -> tuple[np.ndarray, dict]:
@@ -255,15 +267,8 @@ def bake_field(
         for c, G in enumerate(node_G)
     ]
     walks = lobes is not None and len(lights.directions) > 0  # (each sun's L_ms walked, below)
-    max_points = MS_WALK_POINTS if walks else MS_MAX_POINTS
-    k = MS_COARSEN  # coarser still where the points to gather would be over max_points
-    while True:
-        ms_shape = tuple(-(-n // k) for n in shape)
-        ms_near = _coarse_mask(near.reshape(nz, ny, nx), ms_shape, k)
-        if ms_near.sum() <= max_points:
-            break
-        k += 1
-    q = to_world(u2w, unit_points(ms_shape)[ms_near]).astype(np.float32)
+    grid_ms = ms_grid(fp, walks)
+    ms_shape, ms_near, q = grid_ms.shape, grid_ms.near, grid_ms.points
     step = np.array([MS_STEP * voxel])
     gathered, walked = [], []
     for c, lk in enumerate(looked):
@@ -306,7 +311,7 @@ def bake_field(
     tau_light = taus[0] if taus else np.zeros_like(fp.sigma_t)
     packed = {
         "sigma_t": medium["sigma_t"],
-        "tau_light": pack_array("tau_light", tau_light),
+        "tau_light": packed_depth(tau_light),
         "majorant": medium["majorant"],
     }
     t0 = time.perf_counter()
@@ -328,7 +333,7 @@ def bake_field(
         power = ms_light_power(albedo, walks)
         ms_light = {"power": power.tolist(), "range": MS_LIGHT_RANGE}
         view_power = view_light_power(albedo, walks)
-        pu = to_jit(mi.Point3f, unit_points(ms_shape).astype(np.float32))
+        pu = to_jit(mi.Point3f, grid_ms.units)
         for c in range(len(ms)):
             if lights.kind(c) == "directional":  # (a sun's component c is directional light c)
                 tau = depth_at(depth_texture(taus[c], tau_power), pu, mi.Bool(True), tau_power)
@@ -389,7 +394,7 @@ def bake_field(
         "field_ms_s": round(t_ms, 3),
         "field_shape": list(shape),
         "field_ms_shape": list(ms_shape),
-        "field_ms_coarsen": k,
+        "field_ms_coarsen": grid_ms.coarsen,
         "field_points": int(near.sum()),
         "field_ms_points": int(ms_near.sum()),
     }
@@ -506,15 +511,6 @@ def _scatter(mask: np.ndarray, values: np.ndarray, shape) -> np.ndarray:
     out = np.zeros((mask.size, *values.shape[1:]), np.float32)
     out[mask.ravel()] = values
     return out.reshape(shape)
-
-
-def _coarse_mask(near: np.ndarray, shape, k: int) -> np.ndarray:
-    """Flat mask of the coarse (shape = (mx, my, mz)) grid points whose interpolation reaches a
-    fine point of ``near`` ((nz, ny, nx)): its block's, dilated by one coarse point."""
-    mx, my, mz = shape
-    padded = np.pad(near, [(0, m * k - n) for m, n in zip((mz, my, mx), near.shape, strict=True)])
-    coarse = padded.reshape(mz, k, my, k, mx, k).any(axis=(1, 3, 5))
-    return maximum_filter(coarse, size=3, mode="constant").ravel()
 
 
 def fill_unreached(

@@ -3,7 +3,8 @@ points a bake evaluates (field.py bakes onto it)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import threading
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.ndimage import maximum_filter
@@ -36,6 +37,23 @@ def unit_points(shape) -> np.ndarray:
 
 
 @dataclass
+class MsGrid:
+    """A field grid's multiple-scattering grid (field.py bakes L_ms on it): ``coarsen`` times
+    coarser per axis, its ``shape`` (mx, my, mz), the points gathered (``near``, flat: those whose
+    interpolation reaches a baked field point) and where they are (``points``, (M, 3) world,
+    float32), and every point's unit-cube coordinates (``units``, float32, C order)."""
+
+    coarsen: int
+    shape: tuple
+    near: np.ndarray
+    points: np.ndarray
+    units: np.ndarray
+
+
+_MS_LOCK = threading.Lock()
+
+
+@dataclass
 class FieldPoints:
     """The field grid of a medium: its ``shape`` (nx, ny, nz), sigma_t at its points (nz, ny,
     nx), which points are baked (``near``, flat: within one voxel of some density; the rest stay
@@ -54,6 +72,30 @@ class FieldPoints:
     sub: np.ndarray
     sub_coords: np.ndarray
     sub_centres: np.ndarray
+    unit_to_world: np.ndarray
+    _ms: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def ms_grid(self, coarsen: int, max_points: int) -> MsGrid:
+        """The multiple-scattering grid :data:`coarsen` times coarser per axis, or coarser still
+        until at most ``max_points`` of its points are gathered; made once for these points
+        (a precompute makes it while the graph is built, a relight in the process reuses it)."""
+        with _MS_LOCK:  # (the thread that makes it first makes it; another waits)
+            if (coarsen, max_points) not in self._ms:
+                self._ms[coarsen, max_points] = self._make_ms_grid(coarsen, max_points)
+            return self._ms[coarsen, max_points]
+
+    def _make_ms_grid(self, k: int, max_points: int) -> MsGrid:
+        nx, ny, nz = self.shape
+        near = self.near.reshape(nz, ny, nx)
+        while True:
+            shape = tuple(-(-n // k) for n in self.shape)
+            ms_near = coarse_mask(near, shape, k)
+            if ms_near.sum() <= max_points:
+                break
+            k += 1
+        units = unit_points(shape)
+        points = to_world(self.unit_to_world, units[ms_near]).astype(np.float32)
+        return MsGrid(k, shape, ms_near, points, units.astype(np.float32))
 
     @classmethod
     def of(cls, volume, medium: DensityField) -> FieldPoints:
@@ -74,8 +116,17 @@ class FieldPoints:
         centres = sub_centres(sigma_t, voxel)
         coords = sub_coords(centres)
         sub = to_world(u2w, (coords + 0.5) / np.asarray(shape)).astype(np.float32)
-        return cls(shape, sigma_t, near, points, voxel, sub, coords, centres)
+        return cls(shape, sigma_t, near, points, voxel, sub, coords, centres, u2w)
 
 
 def to_world(u2w: np.ndarray, u: np.ndarray) -> np.ndarray:
     return u @ u2w[:3, :3].T + u2w[:3, 3]
+
+
+def coarse_mask(near: np.ndarray, shape, k: int) -> np.ndarray:
+    """Flat mask of the coarse (shape = (mx, my, mz)) grid points whose interpolation reaches a
+    fine point of ``near`` ((nz, ny, nx)): its block's, dilated by one coarse point."""
+    mx, my, mz = shape
+    padded = np.pad(near, [(0, m * k - n) for m, n in zip((mz, my, mx), near.shape, strict=True)])
+    coarse = padded.reshape(mz, k, my, k, mx, k).any(axis=(1, 3, 5))
+    return maximum_filter(coarse, size=3, mode="constant").ravel()

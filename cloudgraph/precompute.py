@@ -23,7 +23,7 @@ from .build import GraphBuilder, build_graph
 from .cache import CacheStore, cache_keys
 from .chunks import placed
 from .errors import CacheError
-from .field import bake_field, light_depths, march_light, medium_arrays
+from .field import bake_field, light_depths, march_light, medium_arrays, ms_grid, packed_depth
 from .field_file import RadianceField, combined
 from .field_grid import FieldPoints
 from .graph import Graph
@@ -66,7 +66,10 @@ def _light_depths(fp: FieldPoints, marched: list) -> tuple[list, float]:
     its own (a chunk that it runs itself, where a Dask cluster was lost, reads the builder's
     arrays)."""
     new_scope()
-    return light_depths(fp, marched)
+    taus, power = light_depths(fp, marched)
+    if taus:  # (and the field file's array of the first, packed while the transport runs)
+        packed_depth(taus[0])
+    return taus, power
 
 
 def _known(gkey: str, what: tuple):
@@ -235,7 +238,9 @@ def precompute(
                 marched = march_light(field_builder, field_points(), lights.directions, field_chunks)
                 # ... and each sun's tau_light made from it on a thread of its own, as it comes in
                 depths = _DEPTHS.submit(_light_depths, field_points(), marched)
-                _DEPTHS.submit(medium_arrays, field_points())  # (then the file's arrays of sigma_t)
+                # (then the file's arrays of sigma_t, and the grid that L_ms is gathered on)
+                _DEPTHS.submit(medium_arrays, field_points())
+                _DEPTHS.submit(ms_grid, field_points(), not isotropic and len(lights.directions) > 0)
 
         if store.graph_path(gkey).is_file():
             march()
