@@ -472,7 +472,8 @@ def _lookup(inputs: dict, q: np.ndarray, node_radius: float) -> np.ndarray:
     grid = NodeGrid.build(positions, search_radius, node_G, bins, gradient)
     G = grid.lookup(to_jit(mi.Point3f, q), (0.05 * node_radius) ** 2, mi.Bool(True))
     dr.eval(G)  # one kernel for the three channels
-    return fill_unreached(from_jit(G), q, positions, node_G)
+    tree = _once(positions, cKDTree) if len(positions) else None  # (shared by the chunks)
+    return fill_unreached(from_jit(G), q, tree, node_G)
 
 
 def background_map(path: str, width: int = BACKGROUND_WIDTH) -> np.ndarray:
@@ -513,18 +514,17 @@ def _scatter(mask: np.ndarray, values: np.ndarray, shape) -> np.ndarray:
     return out.reshape(shape)
 
 
-def fill_unreached(
-    G: np.ndarray, points: np.ndarray, positions: np.ndarray, node_G: np.ndarray
-) -> np.ndarray:
+def fill_unreached(G: np.ndarray, points: np.ndarray, tree: cKDTree | None, node_G: np.ndarray) -> np.ndarray:
     """(M, 3) G at (M, 3) points, where points that no node's search range reaches (zero: at the
-    medium's edge) take their nearest node's value (``node_G`` of ``positions``), so that
-    interpolation there never blends in a false zero. A k-d tree of the nodes: a few hundredths of
-    a second where a distance transform of the whole grid took most of a second."""
+    medium's edge) take their nearest node's value (``node_G`` of the nodes in the k-d ``tree``;
+    None: no nodes), so that interpolation there never blends in a false zero. A k-d tree of the
+    nodes: a few hundredths of a second where a distance transform of the whole grid took most
+    of a second."""
     unreached = ~(G > 0).any(axis=1)
-    if not unreached.any() or not len(positions):
+    if not unreached.any() or tree is None:
         return G
     G = G.copy()
-    G[unreached] = node_G[cKDTree(positions).query(points[unreached], workers=cpu_threads())[1]]
+    G[unreached] = node_G[tree.query(points[unreached], workers=cpu_threads())[1]]
     return G
 
 

@@ -489,6 +489,8 @@ def test_arrays_packed_ahead_make_the_same_file():
 
 
 def test_points_no_node_reaches_take_their_nearest_nodes_value():
+    from scipy.spatial import cKDTree
+
     from cloudgraph.field import fill_unreached
 
     nodes = np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0]])
@@ -496,5 +498,5 @@ def test_points_no_node_reaches_take_their_nearest_nodes_value():
     points = np.array([[1.0, 0.0, 0.0], [5.0, 5.0, 5.0], [9.0, 3.0, 0.0]])
     G = np.array([[0, 0, 0], [5, 5, 5], [0, 0, 0]], np.float32)  # the middle point was reached
     np.testing.assert_array_equal(
-        fill_unreached(G, points, nodes, node_G), [[1, 1, 1], [5, 5, 5], [2, 0.5, 0]]
+        fill_unreached(G, points, cKDTree(nodes), node_G), [[1, 1, 1], [5, 5, 5], [2, 0.5, 0]]
     )
