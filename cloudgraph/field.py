@@ -8,10 +8,10 @@ the density grid, split as the ``gather`` estimator splits it:
 
 - single scattering, exact to the grid: ``tau_light`` is the optical depth from each grid point
   to the light, by a deterministic midpoint march of the trilinear density in Dr.Jit (step
-  :data:`TAU_STEP` voxels), interpolated between grid points as a power of exp(-tau) (neither
+  light_march.TAU_STEP voxels), interpolated between grid points as a power of exp(-tau) (neither
   tau, too dark at a shadow's edge between grid points, nor exp(-tau), too bright), on a grid
   twice as fine where that fits (its points in optically thick voxels marched too), else on
-  the field's, fitted there to sub-voxel samples of the march (light_depth.py);
+  the field's, fitted there to sub-voxel samples of the march (light_march.py, light_depth.py);
 - everything after the first scattering, from the graph, as ``gather`` computes it at its
   camera collision (field_ms.py: one more flight from the grid point, integrated over a fixed
   set of directions; walks with the view's dependence kept, for an anisotropic phase). It is
@@ -57,7 +57,7 @@ from .field_ms import (
 )
 from .graph import gradient_operators, node_gradients
 from .image import latlong_directions
-from .light_depth import FINE_POWER, TAU_MAX, TAU_POWER, fine_depth, fine_shape, fit_depth
+from .light_march import light_depths, march_light, optical_depth
 from .lights import Lights
 from .mitsuba_scene import envmap_emitter
 from .params import GRADIENT, suns_apart
@@ -71,7 +71,6 @@ from .tracing import (
     envmap_seen,
     from_jit,
     opaque,
-    step_length,
     to_jit,
     towards_light,
 )
@@ -103,45 +102,9 @@ EDGE_VOXELS = 1.5
 #: page: a lat-long image this many texels around and half as many from pole to pole
 #: (:func:`background_map`).
 BACKGROUND_WIDTH = 512
-#: Light march step, in field voxels (midpoint rule).
-TAU_STEP = 0.5
 
 
 # ------------------------------------------------------------------ baking
-
-
-def march_light(builder, fp: FieldPoints, directions, chunks) -> list:
-    """Puts out the bake's light marches (``field_tau`` chunks: the optical depth to the light from
-    every field point and sub-voxel sample, Eq. 4.22 at a point, deterministic), one per
-    directional light of ``directions`` ((3,) or (D, 3), the ways they travel), and returns the
-    iterators of their results. They need the medium and the lights only, so a precompute puts
-    them out before the graph is written (precompute.py)."""
-    step = np.array([TAU_STEP * fp.voxel])
-    points = np.concatenate([fp.points, fp.sub])
-    return [
-        chunks(builder, "field_tau", {"points": points, "to_light": towards_light(d), "step": step})
-        for d in np.asarray(directions, float).reshape(-1, 3)
-    ]
-
-
-def light_depths(fp: FieldPoints, marched: list) -> tuple[list, float]:
-    """Each sun's tau_light grid from its light march (:func:`march_light`'s results), and the
-    power of T that its texture interpolates: at twice the field's resolution where that fits
-    (light_depth.fine_depth), else on the field's grid fitted to the sub-voxel samples
-    (light_depth.fit_depth). Numpy alone: a precompute makes them on a thread of their own
-    while it solves the transport."""
-    nx, ny, nz = fp.shape
-    fine = fine_shape((nz, ny, nx), len(marched)) is not None
-    taus = []
-    for results in marched:  # (a sun's: the grid points', then the sub-voxel samples')
-        tau = placed(results, len(fp.points) + len(fp.sub), 1)[:, 0]
-        tau_grid = _scatter(fp.near, tau[: len(fp.points)], (nz, ny, nx))
-        samples = tau[len(fp.points) :]
-        if fine:
-            taus.append(fine_depth(tau_grid, fp.near.reshape(nz, ny, nx), fp.sub_coords, samples))
-        else:
-            taus.append(fit_depth(tau_grid, fp.sigma_t, fp.sub_centres, samples))
-    return taus, FINE_POWER if fine else TAU_POWER
 
 
 def ms_grid(fp: FieldPoints, walked: bool) -> MsGrid:
@@ -418,7 +381,7 @@ def field_chunk(builder, stage: str, index: int, inputs: dict) -> tuple[np.ndarr
     if stage == "field_tau":
         step = float(inputs["step"][0])
         to_light = opaque(mi.Vector3f, inputs["to_light"])  # (a new light compiles nothing)
-        tau = _optical_depth(medium, to_jit(mi.Point3f, q), to_light, step)
+        tau = optical_depth(medium, to_jit(mi.Point3f, q), to_light, step)
         values = np.array(tau, np.float32)[:, None]
     else:
         G_tex = _once(inputs["G"], g_texture)
@@ -526,20 +489,3 @@ def fill_unreached(G: np.ndarray, points: np.ndarray, tree: cKDTree | None, node
     G = G.copy()
     G[unreached] = node_G[tree.query(points[unreached], workers=cpu_threads())[1]]
     return G
-
-
-@dr.syntax
-def _optical_depth(medium, p: mi.Point3f, w: mi.Vector3f, step: float) -> mi.Float:
-    """int_0^boundary sigma_t(p + s w) ds per point, midpoint rule, stopped at TAU_MAX; blocks
-    without density are crossed in one step."""
-    t, t_end = medium.box_interval(p, w)
-    tau = mi.Float(0.0)  # Optical depth accumulator
-    active = t < t_end
-    while dr.hint(active, label="light_march"):
-        sigma_maj, t_leave = medium.block(p, w, t, active)
-        empty = sigma_maj <= 0.0
-        dt = step_length(empty, t, t_leave, t_end, step, 1e-3 * step)
-        tau += dr.select(empty, 0.0, medium.sigma_t(p + (t + 0.5 * dt) * w) * dt)
-        t += dt
-        active &= (t < t_end) & (tau < TAU_MAX)
-    return dr.minimum(tau, TAU_MAX)

@@ -23,7 +23,7 @@ from .build import GraphBuilder, build_graph
 from .cache import CacheStore, cache_keys
 from .chunks import placed
 from .errors import CacheError
-from .field import bake_field, light_depths, march_light, medium_arrays, ms_grid, packed_depth
+from .field import bake_field, medium_arrays, ms_grid, packed_depth
 from .field_file import RadianceField, combined
 from .field_grid import FieldPoints
 from .graph import Graph
@@ -37,6 +37,7 @@ from .graph_file import (
     stored_positions,
     unpack_radiance,
 )
+from .light_march import light_depths, march_light
 from .lights import Lights, component_scenes
 from .params import GRADIENT, LIGHTING, BuildParams, build_params, suns_apart
 from .scene import Scene
@@ -55,14 +56,14 @@ log = logging.getLogger(__name__)
 _KEPT: dict = {}
 
 
-#: The thread that makes the suns' tau_light (field.light_depths: numpy, 0.4 s on smoke1) from the
+#: The thread that makes the suns' tau_light (light_march.light_depths: numpy, 0.4 s on smoke1) from the
 #: light march, then the file's arrays of the medium (field.medium_arrays), while the graph is
 #: read or built and the transport solved.
 _DEPTHS = ThreadPoolExecutor(1, thread_name_prefix="field-depths")
 
 
 def _light_depths(fp: FieldPoints, marched: list) -> tuple[list, float]:
-    """field.light_depths on the thread of :data:`_DEPTHS`, which lives on: in a Dr.Jit scope of
+    """light_march.light_depths on the thread of :data:`_DEPTHS`, which lives on: in a Dr.Jit scope of
     its own (a chunk that it runs itself, where a Dask cluster was lost, reads the builder's
     arrays)."""
     new_scope()
