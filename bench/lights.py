@@ -6,7 +6,8 @@ albedo: volpath with Mitsuba's emitters (Russian roulette off) as the reference,
 reference over 2 % from the bare sky), the relight (a new light list on the graph already made)
 against the first precompute, the relight that adds one more sun to the setup's cache, and a
 re-mix (new intensities of the same lights: set_lights and a field frame). Rows are printed and
-written as they finish (bench/results/lights-<date>.json and .md). ``--timing`` leaves out the
+written as they finish (bench/results/lights-<date>.json and .md); each run's caches are its own,
+made in a temporary store and removed at the end. ``--timing`` leaves out the
 references and the renders: the precompute times only; ``--remix`` the re-mixes only (the median
 of REMIXES, alternating two intensity sets on a warm renderer).
 
@@ -17,6 +18,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import shutil
+import tempfile
 import time
 from pathlib import Path
 
@@ -124,7 +127,19 @@ def run(
     timing=False,
     remix_only=False,
 ):
-    store = CacheStore(out_dir.parent / "cache-lights")
+    # a store of this run's own: the times are those of precomputes that find no cache (a store
+    # kept between runs found every one of them, and timed the reads)
+    scratch = Path(tempfile.mkdtemp(prefix="cloudgraph-lights-"))
+    try:
+        return _run(
+            scenes, albedos, setups, ref_spp, gather_spp, size, quality, out_dir, timing, remix_only, scratch
+        )
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+def _run(scenes, albedos, setups, ref_spp, gather_spp, size, quality, out_dir, timing, remix_only, scratch):
+    store = CacheStore(scratch)
     ref_dir = out_dir.parent / "reference-cache"
     stem = out_dir / f"lights-{time.strftime('%Y%m%d-%H%M%S')}"
     envmap = write_envmap(out_dir.parent / "cache-lights" / "gradient.exr")
