@@ -40,7 +40,7 @@ from scipy.spatial import cKDTree
 
 from .chunks import placed
 from .field_file import RadianceField, component_names, pack_array, shape_name
-from .field_grid import FieldPoints, MsGrid
+from .field_grid import FieldPoints, MsGrid, make_ms_grid
 from .field_ms import (
     MS_LIGHT_RANGE,
     MS_STEP,
@@ -110,8 +110,9 @@ BACKGROUND_WIDTH = 512
 def ms_grid(fp: FieldPoints, walked: bool) -> MsGrid:
     """The grid the bake gathers L_ms on (``walked``: each sun's L_ms by walks, an anisotropic
     phase, on a grid of up to MS_WALK_POINTS points; else MS_MAX_POINTS), made once for ``fp``
-    (FieldPoints.ms_grid): a precompute makes it while the graph is built."""
-    return fp.ms_grid(MS_COARSEN, MS_WALK_POINTS if walked else MS_MAX_POINTS)
+    (:func:`_once`): a precompute makes it while the graph is built, and a relight in this process
+    reuses it with the grid points."""
+    return _once(fp, make_ms_grid, MS_COARSEN, MS_WALK_POINTS if walked else MS_MAX_POINTS)
 
 
 def packed_depth(tau: np.ndarray):
@@ -400,16 +401,18 @@ def field_chunk(builder, stage: str, index: int, inputs: dict) -> tuple[np.ndarr
     return np.array([a]), values
 
 
-#: What is made from an input array once while it lives (:func:`_once`): the textures that
+#: What is made from an input once while it lives (:func:`_once`): the textures that
 #: ``field_ms`` chunks read (the chunks of one gather share their inputs' arrays, in this process
 #: and on a Dask worker alike, and making a field-sized texture took longer than marching a
-#: chunk: smoke1, 16 chunks, 1.6 s of the bake's 4.3 s), and sigma_t's packed arrays.
+#: chunk: smoke1, 16 chunks, 1.6 s of the bake's 4.3 s), sigma_t's and tau_light's packed arrays,
+#: the nodes' k-d tree and the L_ms grid of a field's points.
 _ONCE: dict = {}
 _ONCE_LOCK = threading.Lock()
 
 
-def _once(values: np.ndarray, make, *args):
-    """``make(values, *args)``, made once per array object while it lives."""
+def _once(values, make, *args):
+    """``make(values, *args)``, made once per object (an array, the field's points) while it
+    lives."""
     key = (id(values), make, args)
     with _ONCE_LOCK:  # (a chunk on another thread waits for the texture, not makes it again)
         if key not in _ONCE:

@@ -3,8 +3,7 @@ points a bake evaluates (field.py bakes onto it)."""
 
 from __future__ import annotations
 
-import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.ndimage import maximum_filter
@@ -50,9 +49,6 @@ class MsGrid:
     units: np.ndarray
 
 
-_MS_LOCK = threading.Lock()
-
-
 @dataclass
 class FieldPoints:
     """The field grid of a medium: its ``shape`` (nx, ny, nz), sigma_t at its points (nz, ny,
@@ -60,7 +56,7 @@ class FieldPoints:
     zero) and where those are (``points``, (M, 3) world), ``voxel`` its smallest world step, and
     the light march's sub-voxel samples in optically thick voxels (``sub``, (S, 3) world;
     ``sub_coords``, the same in grid coordinates; ``sub_centres``, the grid points they sit
-    around: light_depth.py). Made once, by the process that
+    around: light_depth.py), and ``unit_to_world`` (the volume's). Made once, by the process that
     bakes the field (:meth:`of`, precompute.py), from the medium alone; the bake's chunks get the
     points they need as inputs."""
 
@@ -73,29 +69,6 @@ class FieldPoints:
     sub_coords: np.ndarray
     sub_centres: np.ndarray
     unit_to_world: np.ndarray
-    _ms: dict = field(default_factory=dict, repr=False, compare=False)
-
-    def ms_grid(self, coarsen: int, max_points: int) -> MsGrid:
-        """The multiple-scattering grid :data:`coarsen` times coarser per axis, or coarser still
-        until at most ``max_points`` of its points are gathered; made once for these points
-        (a precompute makes it while the graph is built, a relight in the process reuses it)."""
-        with _MS_LOCK:  # (the thread that makes it first makes it; another waits)
-            if (coarsen, max_points) not in self._ms:
-                self._ms[coarsen, max_points] = self._make_ms_grid(coarsen, max_points)
-            return self._ms[coarsen, max_points]
-
-    def _make_ms_grid(self, k: int, max_points: int) -> MsGrid:
-        nx, ny, nz = self.shape
-        near = self.near.reshape(nz, ny, nx)
-        while True:
-            shape = tuple(-(-n // k) for n in self.shape)
-            ms_near = coarse_mask(near, shape, k)
-            if ms_near.sum() <= max_points:
-                break
-            k += 1
-        units = unit_points(shape)
-        points = to_world(self.unit_to_world, units[ms_near]).astype(np.float32)
-        return MsGrid(k, shape, ms_near, points, units.astype(np.float32))
 
     @classmethod
     def of(cls, volume, medium: DensityField) -> FieldPoints:
@@ -130,3 +103,19 @@ def coarse_mask(near: np.ndarray, shape, k: int) -> np.ndarray:
     padded = np.pad(near, [(0, m * k - n) for m, n in zip((mz, my, mx), near.shape, strict=True)])
     coarse = padded.reshape(mz, k, my, k, mx, k).any(axis=(1, 3, 5))
     return maximum_filter(coarse, size=3, mode="constant").ravel()
+
+
+def make_ms_grid(fp: FieldPoints, coarsen: int, max_points: int) -> MsGrid:
+    """The multiple-scattering grid of ``fp``: ``coarsen`` times coarser per axis, or coarser
+    still until at most ``max_points`` of its points are gathered."""
+    nx, ny, nz = fp.shape
+    near, k = fp.near.reshape(nz, ny, nx), coarsen
+    while True:
+        shape = tuple(-(-n // k) for n in fp.shape)
+        ms_near = coarse_mask(near, shape, k)
+        if ms_near.sum() <= max_points:
+            break
+        k += 1
+    units = unit_points(shape)
+    points = to_world(fp.unit_to_world, units[ms_near]).astype(np.float32)
+    return MsGrid(k, shape, ms_near, points, units.astype(np.float32))

@@ -2,8 +2,8 @@
 interpolation between grid points reads it right where the medium changes fast.
 
 At grid points the light march (light_march.py) gives tau_light exactly. Between them the field
-interpolates it trilinearly, and where a voxel's optical depth changes fast tau_light bends within the
-voxel: it grows faster than linearly where the density ramps up toward the light, so
+interpolates it trilinearly, and where a voxel's optical depth changes fast tau_light bends
+within the voxel: it grows faster than linearly where the density ramps up toward the light, so
 interpolating exact point values reads it too high there, and the field's single scattering
 too low (a dense cloud lit from the side read 5 % dark, the rim of a back-lit sphere 8 %).
 Where a voxel's optical depth changes by THICK or more from a neighbour's, the march also

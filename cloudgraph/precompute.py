@@ -56,16 +56,17 @@ log = logging.getLogger(__name__)
 _KEPT: dict = {}
 
 
-#: The thread that makes the suns' tau_light (light_march.light_depths: numpy, 0.4 s on smoke1) from the
-#: light march, then the file's arrays of the medium (field.medium_arrays), while the graph is
-#: read or built and the transport solved.
+#: The thread that makes the suns' tau_light (light_march.light_depths: numpy, 0.4 s on smoke1)
+#: from the light march, then the file's arrays of the medium (field.medium_arrays) and the grid
+#: that L_ms is gathered on (field.ms_grid), while the graph is read or built and the transport
+#: solved.
 _DEPTHS = ThreadPoolExecutor(1, thread_name_prefix="field-depths")
 
 
 def _light_depths(fp: FieldPoints, marched: list) -> tuple[list, float]:
-    """light_march.light_depths on the thread of :data:`_DEPTHS`, which lives on: in a Dr.Jit scope of
-    its own (a chunk that it runs itself, where a Dask cluster was lost, reads the builder's
-    arrays)."""
+    """light_march.light_depths on the thread of :data:`_DEPTHS`, which lives on: in a Dr.Jit
+    scope of its own (a chunk that it runs itself, where a Dask cluster was lost, reads the
+    builder's arrays)."""
     new_scope()
     taus, power = light_depths(fp, marched)
     if taus:  # (and the field file's array of the first, packed while the transport runs)
