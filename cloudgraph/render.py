@@ -61,7 +61,8 @@ class GraphRenderer:
         if estimator not in self._integrators:
             # The plugin subclasses a variant's class, so it is imported once a variant is set
             # (entry points set it after importing this module)
-            from .integrators.graph import FieldTextures, GraphIntegrator
+            from .field_textures import FieldTextures
+            from .integrators.graph import GraphIntegrator
 
             grid = field = None
             if estimator == "field":

@@ -22,7 +22,8 @@ LAYERS: list[set[str]] = [
     {"tracing", "mitsuba_scene", "params", "store", "procedural", "lights"},
     # nodes, direct light, the spatial index, the field's file, cache keys and store, phase walks
     {"nodes", "lighting", "spatial", "field_file", "field_grid", "cache", "phase"},
-    {"field_ms", "light_march"},  # the field's multiple scattering, from the graph; its light march
+    # the field's multiple scattering, from the graph; its light march; its textures for a march
+    {"field_ms", "light_march", "field_textures"},
     # the graph build, the field bake, the integrator plugin (reads caches only)
     {"build", "field", "integrators.graph"},
     {"stages"},  # stage name -> chunk function

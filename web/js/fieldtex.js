@@ -250,7 +250,7 @@ export function viewGrid(array, unitToWorld) {
  * A shaped sun's view terms summed toward a pinhole camera at ``eye`` (world): at each texel x
  * of its grid (viewGrid's), sum_i c_i B_i(d) with d = (x - eye) / |x - eye| in the sun's
  * ``frame`` (9 numbers, rows e_x, e_y, e_z), the direction of every camera ray through x, as
- * the server's march takes it (cloudgraph/integrators/graph.py, look_from): the march reads
+ * the server's march takes it (cloudgraph/field_textures.py, look_from): the march reads
  * one channel where it would read SHAPE_TERMS.
  */
 export function viewSums(grid, frame, eye) {
