@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 
 from cloudgraph.procedural import box_volume, noise_volume
-from cloudgraph.render import render_volpath
-from cloudgraph.scene import parse_scene
+from cloudgraph.render import GraphRenderer, render_volpath
+from cloudgraph.scene import PhaseSpec, parse_scene
 
 
 def pixel_rays(eye, target, up, fov_deg: float, width: int, height: int):
@@ -157,3 +157,18 @@ def kernels_compiled_by_the_second(first, second):
         if k["hash"] not in known or not k["cache_hit"] or k["cache_disk"]
     ]
     return (a, b), new
+
+
+def hg(g: float, mu):
+    """The Henyey-Greenstein phase, per steradian (mu: cosine between the light's travel before
+    and after scattering; g > 0 forward), written out here independently of the engine."""
+    return (1 - g * g) / (4 * np.pi * (1 + g * g - 2 * g * np.asarray(mu)) ** 1.5)
+
+
+def with_phase(scene, phase: dict, **render):
+    medium = scene.medium.model_copy(update={"phase": PhaseSpec.model_validate(phase)})
+    return scene.model_copy(update={"medium": medium, "render": scene.render.model_copy(update=render)})
+
+
+def graph_renderer(cache, volume, scene) -> GraphRenderer:
+    return GraphRenderer(cache, volume, scene)
