@@ -192,17 +192,27 @@ def get_animation(anim_id: str, redis: RedisDep) -> dict:
     response_class=Response,
     responses={
         200: {"description": "The MP4", "content": binary("video/mp4")},
-        **error_responses(404, 409, 422, 503, about={409: "The animation has not finished"}),
+        **error_responses(
+            404,
+            409,
+            410,
+            422,
+            503,
+            about={
+                409: "The animation has not finished",
+                410: "The video was removed: POST the animation again",
+            },
+        ),
     },
 )
 def get_video(anim_id: str, redis: RedisDep):
     job = _anim(redis, anim_id)
     if status_of(job) != JobStatus.finished:
         raise HTTPException(409, f"animation {anim_id} is {status_of(job).value}, not finished")
-
-    return FileResponse(
-        Path(job.meta["out_dir"]) / VIDEO_FILE, media_type="video/mp4", filename=f"{anim_id}.mp4"
-    )
+    video = Path(job.meta["out_dir"]) / VIDEO_FILE
+    if not video.is_file():
+        raise HTTPException(410, f"the video of animation {anim_id} is gone; start the animation again")
+    return FileResponse(video, media_type="video/mp4", filename=f"{anim_id}.mp4")
 
 
 @router.get(

@@ -41,12 +41,18 @@ def readyz(request: Request) -> dict:
     try:
         redis.ping()
     except Exception:
-        raise HTTPException(503, "redis is not reachable") from None
+        raise HTTPException(503, "redis is not reachable", headers={"Retry-After": "5"}) from None
     live, stuck = worker_health(request.app.state.queue, request.app.state.settings)
     if live < 1:
-        raise HTTPException(503, "no worker is alive: start one with `python -m worker`")
+        raise HTTPException(
+            503, "no worker is alive: start one with `python -m worker`", headers={"Retry-After": "10"}
+        )
     if stuck >= live:
-        raise HTTPException(503, f"every worker ({live}) is stuck past its job's budget; see the worker log")
+        raise HTTPException(
+            503,
+            f"every worker ({live}) is stuck past its job's budget; see the worker log",
+            headers={"Retry-After": "10"},
+        )
     return {"status": "ready", "workers": live, "stuck": stuck}
 
 

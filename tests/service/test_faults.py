@@ -148,6 +148,7 @@ def test_without_a_worker_a_sync_render_is_503_at_once_and_readyz_says_why(tmp_p
             assert c.get("/healthz").json() == {"status": "ok"}
             r = c.get("/readyz")
             assert r.status_code == 503 and "no worker is alive" in detail(r)
+            assert r.headers["retry-after"] == "10"
             r = c.get("/metrics")
             assert r.status_code == 200 and r.headers["content-type"].startswith("text/plain")
             assert "cloudgraph_workers 0.0" in r.text

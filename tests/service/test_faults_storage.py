@@ -1,6 +1,7 @@
 """Stored things that go missing or half-made: a cache whose field (or graph) file is gone is not
-finished and is rebuilt when asked for again; an upload whose client or API died is not stored
-and leaves no temporary file; and a request without a key is refused before its body is read.
+finished and is rebuilt when asked for again; an animation whose video is gone answers 410; an
+upload whose client or API died is not stored and leaves no temporary file; and a request without
+a key is refused before its body is read.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from ..harness import FOG, KEY, cache_of, detail, fog_scene, wait_until
+from ..harness import FOG, KEY, cache_of, detail, fog_scene, job_of, wait_until
 from .faults import Launched, _children, _cmdline, assert_no_leaks, cache_files, wait_status
 
 AUTH = {"Authorization": f"Bearer {KEY}"}
@@ -43,6 +44,22 @@ def _finished_cache(c, body: dict) -> tuple[str, dict]:
     end, _ = wait_status(c, f"cache-{cid}", 120)
     assert end["status"] == "finished", end
     return cid, c.get(f"/v1/caches/{cid}").json()
+
+
+def test_an_animation_whose_video_was_removed_answers_410_not_500(service, fog):
+    body = {"scene": fog_scene(fog, 16), "orbit": {}, "frames": 2, "fps": 10, "quality": "draft"}
+    with service.client(headers=AUTH) as c:
+        r = c.post("/v1/animations", json=body)
+        assert r.status_code == 202, r.text
+        anim = job_of(r)
+        end, _ = wait_status(c, anim, 120)
+        assert end["status"] == "finished", end
+        video = service.data_dir / "outputs" / "animations" / anim / "video.mp4"
+        assert video.is_file()
+        video.unlink()
+        r = c.get(f"/v1/animations/{anim}/video")
+        assert r.status_code == 410, r.text
+        assert detail(r) == f"the video of animation {anim} is gone; start the animation again"
 
 
 @pytest.mark.parametrize("lost", ["field", "graph"])
