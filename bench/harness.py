@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from cloudgraph.cache import CacheStore, volume_id
+from cloudgraph.errors import SceneError
 from cloudgraph.metrics import bias_metrics, compare
 from cloudgraph.precompute import precompute
 from cloudgraph.procedural import noise_volume, sphere_volume
@@ -77,7 +78,7 @@ def bench_scenes(names: list[str] | None = None) -> list[BenchScene]:
     out = []
     for name in names or SCENES:
         if name not in makers:
-            raise ValueError(f"unknown bench scene {name!r}; choose from {', '.join(makers)}")
+            raise SceneError(f"unknown bench scene {name!r}; choose from {', '.join(makers)}")
         v = makers[name]()
         # densest voxel at optical depth 1, or: sphere, optical radius about 10 (docs/benchmark.md);
         # dense 4; thick 2; holdout_thick 2.5

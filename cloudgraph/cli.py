@@ -21,19 +21,20 @@ from .options import ESTIMATORS, INTEGRATORS, QUALITIES
 def _cmd_render(args: argparse.Namespace) -> None:
     from .image import write_exr, write_png
     from .mitsuba_scene import set_variant
-    from .render import render_volpath, scene_volume
+    from .render import render_volpath
     from .scene import load_scene
 
-    for out in filter(None, (args.out, args.png)):  # fail before rendering, not after
-        folder = Path(out).resolve().parent
-        if not folder.is_dir():
-            raise CloudgraphError(f"output folder does not exist: {folder}")
+    _writable(args.out, ".exr", "--out")  # fail before rendering, not after
+    if args.png:
+        _writable(args.png, ".png", "--png")
+    if not -20.0 <= args.exposure <= 20.0:  # (NaN too)
+        raise CloudgraphError(f"--exposure must be within -20..20 stops, got {args.exposure}")
     scene = load_scene(args.scene)
     if args.spp is not None:
         if not 1 <= args.spp <= 65536:
             raise CloudgraphError(f"--spp must be in 1..65536, got {args.spp}")
         scene = scene.model_copy(update={"render": scene.render.model_copy(update={"spp": args.spp})})
-    volume = scene_volume(scene)
+    volume = _checked_volume(scene)
     set_variant()
     t0 = time.perf_counter()
     if args.integrator == "volpath":
@@ -54,10 +55,53 @@ def _cmd_render(args: argparse.Namespace) -> None:
     )
 
 
+def _writable(out: str, suffix: str, flag: str) -> None:
+    """A file of ``suffix`` that can be written at ``out``, checked by making it (and removing
+    it again if it was not there)."""
+    path = Path(out)
+    if path.suffix.lower() != suffix:
+        raise CloudgraphError(f"{flag} must name a {suffix} file, got {out!r}")
+    if path.is_dir():
+        raise CloudgraphError(f"{flag} {out} is a folder")
+    folder = path.resolve().parent
+    if not folder.is_dir():
+        raise CloudgraphError(f"output folder does not exist: {folder}")
+    existed = path.exists()
+    with open(path, "ab"):  # (an OSError names the file and why: main() prints it)
+        pass
+    if not existed:
+        path.unlink()
+
+
+def _checked_volume(scene):
+    """The scene's volume, refused where one voxel at its densest point is optically deeper
+    than options.MAX_VOXEL_TAU (as the HTTP API refuses it): delta tracking would take unbounded
+    steps there."""
+    from .errors import SceneError
+    from .options import MAX_VOXEL_TAU
+    from .render import scene_volume
+
+    volume = scene_volume(scene)
+    d = scene.medium.density_scale
+    per_unit = float(volume.density.max(initial=0.0)) * float(max(volume.voxel_size))
+    if d * per_unit > MAX_VOXEL_TAU:
+        raise SceneError(
+            f"medium.density_scale: {d:g} makes the optical depth across one voxel {d * per_unit:.3g}, "
+            f"over the limit of {MAX_VOXEL_TAU:g}; use at most {MAX_VOXEL_TAU / per_unit:.4g}"
+        )
+    return volume
+
+
 def _store(args: argparse.Namespace):
     from .cache import CacheStore
 
+    if args.cache_dir and Path(args.cache_dir).exists() and not Path(args.cache_dir).is_dir():
+        raise CloudgraphError(f"--cache-dir {args.cache_dir} is a file, not a folder")
     return CacheStore(args.cache_dir)
+
+
+#: Whether a progress bar's line on stderr is still open (an error then starts a line of its own)
+_BAR = {"open": False}
 
 
 def _progress_bar():
@@ -66,6 +110,7 @@ def _progress_bar():
     def show(stage: str, fraction: float) -> None:
         n = int(round(30 * fraction))
         end = "\n" if fraction >= 1.0 else ""
+        _BAR["open"] = not end
         print(
             f"\r[{'#' * n}{'.' * (30 - n)}] {100 * fraction:3.0f}% {stage:<10}",
             end=end,
@@ -79,11 +124,10 @@ def _progress_bar():
 def _cmd_precompute(args: argparse.Namespace) -> None:
     from .mitsuba_scene import set_variant
     from .precompute import precompute
-    from .render import scene_volume
     from .scene import load_scene
 
     scene = load_scene(args.scene)
-    volume = scene_volume(scene)
+    volume = _checked_volume(scene)
     set_variant()
     if address := os.environ.get("CLOUDGRAPH_DASK_SCHEDULER"):  # its chunks on that Dask cluster
         from cloudgraph_service.dask_chunks import precompute_chunks
@@ -258,15 +302,20 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args.func(args)
     except CloudgraphError as err:
-        print(f"cloudgraph: error: {err}", file=sys.stderr)
+        _fail(f"cloudgraph: error: {err}")
         return 2
     except OSError as err:
-        print(f"cloudgraph: error: {err.strerror or err}: {err.filename or ''}".rstrip(": "), file=sys.stderr)
+        _fail(f"cloudgraph: error: {err.strerror or err}: {err.filename or ''}".rstrip(": "))
         return 2
     except KeyboardInterrupt:
-        print("cloudgraph: interrupted", file=sys.stderr)
+        _fail("cloudgraph: interrupted")
         return 130
     return 0
+
+
+def _fail(line: str) -> None:
+    """One line on stderr, on a line of its own after an open progress bar."""
+    print(("\n" if _BAR["open"] else "") + line, file=sys.stderr)
 
 
 if __name__ == "__main__":

@@ -189,7 +189,11 @@ def _rgb_image(path) -> np.ndarray:
     """(h, w, 3) float32 linear RGB of an image file, read by Mitsuba."""
     import mitsuba as mi
 
-    bitmap = mi.Bitmap(str(path)).convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False)
+    try:
+        bitmap = mi.Bitmap(str(path))
+    except Exception as err:  # Mitsuba raises RuntimeError with the file's problem
+        raise SceneError(f"cannot read the environment map {path}: {str(err).splitlines()[-1]}") from None
+    bitmap = bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False)
     return np.array(bitmap, np.float32)
 
 
@@ -240,7 +244,19 @@ def volpath_dict(max_depth: int, rr: bool = False) -> dict:
 
 
 def load_mitsuba_scene(scene: Scene, volume: Volume, integrator: dict | None = None):
-    """Builds the Mitsuba scene (a variant must be set)."""
+    """Builds the Mitsuba scene (a variant must be set).
+
+    Raises:
+        SceneError: a value Mitsuba refuses (a camera whose clip range is not finite, a depth past
+            its integer range), in its own words.
+    """
     import mitsuba as mi
 
-    return mi.load_dict(scene_dict(scene, volume, integrator))
+    for light in scene.lights or ():
+        if light.type == "envmap" and light.path is not None and not os.path.isfile(light.path):
+            raise SceneError(f"environment map not found: {light.path}")
+    spec = scene_dict(scene, volume, integrator)
+    try:
+        return mi.load_dict(spec)
+    except Exception as err:  # Mitsuba raises RuntimeError, with its source position first
+        raise SceneError(f"Mitsuba refuses the scene: {str(err).splitlines()[-1]}") from None

@@ -15,5 +15,10 @@ ESTIMATORS = ("gather", "free_flight", "march", "field")
 #: scatters, which holds single scattering isotropically, so they take the isotropic phase only.
 PHASE_ESTIMATORS = ("gather", "field")
 
+#: The largest optical depth across one voxel at a medium's densest point (density_scale x the
+#: densest value x the voxel's size): past it delta tracking takes unbounded steps, and a render
+#: or a precompute runs for hours where it should refuse (the HTTP API's default too).
+MAX_VOXEL_TAU = 100.0
+
 #: Graph quality presets (see ``cloudgraph.graph.PRESETS``).
 QUALITIES = ("draft", "compact", "default", "high")

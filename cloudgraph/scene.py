@@ -462,12 +462,16 @@ def load_scene(path: str | Path) -> Scene:
         raise SceneError(f"scene file not found: {path}") from None
     except OSError as err:
         raise SceneError(f"cannot read scene file {path}: {err.strerror}") from None
+    except UnicodeDecodeError as err:
+        raise SceneError(f"{path} is not UTF-8 text (byte {err.start}); a scene is a JSON file") from None
     try:
         json.loads(text)
     except json.JSONDecodeError as err:
         raise SceneError(
             f"{path} is not valid JSON: {err.msg} at line {err.lineno}, column {err.colno}"
         ) from None
+    except RecursionError:
+        raise SceneError(f"{path} nests its JSON too deeply to be a scene") from None
     return parse_scene(text, base_dir=path.parent)
 
 

@@ -94,6 +94,8 @@ def load_volume(path: str | Path, grid: str | None = None, scale: float = 1.0) -
             does not hold float density; an empty grid; a bounding box over the densify cap.
     """
     path = Path(path)
+    if path.is_dir():
+        raise VolumeError(f"{path} is a folder, not a volume file")
     if not path.is_file():
         raise VolumeError(f"volume file not found: {path}")
     with open(path, "rb") as f:
@@ -104,7 +106,14 @@ def load_volume(path: str | Path, grid: str | None = None, scale: float = 1.0) -
         vol = _load_vol(path)
     else:
         raise VolumeError(f"{path} is neither an OpenVDB (.vdb) nor a Mitsuba (.vol) volume file")
-    return vol.scaled(scale)
+    vol = vol.scaled(scale)
+    size = np.asarray(vol.voxel_size, float)
+    if not (np.all(np.isfinite(size)) and np.all(size > 0)):
+        raise VolumeError(
+            f"{path} at scale {scale:g} has voxels of size {size.tolist()}: a volume needs a finite, "
+            "non-zero extent on every axis"
+        )
+    return vol
 
 
 def _load_vdb(path: Path, grid: str | None) -> Volume:

@@ -13,6 +13,8 @@ from typing import Annotated
 from pydantic import Field, ValidationError, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from cloudgraph import options
+
 ENV_PREFIX = "CLOUDGRAPH_"
 #: Keys that must never guard a service (the template's placeholders and common words).
 _PLACEHOLDER_KEYS = {"changeme", "changethis", "secret", "password"}
@@ -45,7 +47,7 @@ class Settings(BaseSettings):
     MAX_SPP: int = 4096
     MAX_FRAMES: int = 600
     MAX_DEPTH: int = 1000  # scattering events, when not -1 (unbounded, converged)
-    MAX_VOXEL_TAU: float = 100.0  # optical depth across one voxel at the densest point
+    MAX_VOXEL_TAU: float = options.MAX_VOXEL_TAU  # optical depth across one voxel at the densest point
     MAX_QUEUED: int = 200  # jobs waiting; beyond this, 429 with Retry-After
     SYNC_MAX_PIXELS: int = 512 * 512  # renders up to this size come back in the response
     SYNC_WAIT_S: float = 60.0

@@ -86,13 +86,35 @@ def test_schema_is_json():
         (["render", "{scene}", "--out", "x.exr", "--spp", "0"], "--spp must be in 1..65536"),
         (["render", "{bad_scene}", "--out", "x.exr"], "camera.fov"),
         (["render", "{scene}", "--out", "{tmp}/no/such/dir/x.exr"], "error"),
+        # refused before any rendering: each of these rendered first, or hung, or printed a traceback
+        (["render", "{scene}", "--out", "x.txt"], "--out must name a .exr file"),
+        (["render", "{scene}", "--out", "{tmp}/folder.exr"], "is a folder"),
+        (["render", "{scene}", "--out", "x.exr", "--png", "y.png", "--exposure", "nan"], "--exposure"),
+        (["render", "{dense}", "--out", "x.exr"], "1e+30 makes the optical depth across one voxel"),
+        (["precompute", "{dense}"], "over the limit of 100; use at most"),
+        (["render", "{tiny}", "--out", "x.exr"], "a volume needs a finite, non-zero extent"),
+        (["render", "{env}", "--integrator", "volpath", "--out", "x.exr"], "environment map not found"),
+        (["render", "{latin}", "--out", "x.exr"], "is not UTF-8 text"),
+        (["render", "{deep}", "--out", "x.exr"], "nests its JSON too deeply"),
+        (["precompute", "{scene}", "--cache-dir", "{scene}"], "is a file, not a folder"),
     ],
 )
 def test_bad_input_exits_non_zero_with_one_line(scene_file, tmp_path, args, words):
-    bad = json.loads(scene_file.read_text())
-    bad["camera"]["fov"] = 200
-    (tmp_path / "bad.json").write_text(json.dumps(bad))
-    args = [a.format(scene=scene_file, bad_scene=tmp_path / "bad.json", tmp=tmp_path) for a in args]
+    good = json.loads(scene_file.read_text())
+    scenes = {
+        "bad": good | {"camera": good["camera"] | {"fov": 200}},
+        "dense": good | {"medium": {"density_scale": 1e30}},  # cube of density 1, voxel 1/8
+        "tiny": good | {"volume": {"path": "cube.vdb", "scale": 1e-300}},
+        "env": {k: v for k, v in good.items() if k != "light"}
+        | {"lights": [good["light"] | {"type": "directional"}, {"type": "envmap", "path": "nope.exr"}]},
+    }
+    for name, doc in scenes.items():
+        (tmp_path / f"{name}.json").write_text(json.dumps(doc))
+    (tmp_path / "latin.json").write_bytes(json.dumps(good).replace("cube", "cub\u00e9").encode("latin-1"))
+    (tmp_path / "deep.json").write_text("[" * 100_000 + "]" * 100_000)
+    (tmp_path / "folder.exr").mkdir()
+    names = {name: tmp_path / f"{name}.json" for name in [*scenes, "latin", "deep"]}
+    args = [a.format(scene=scene_file, bad_scene=names["bad"], tmp=tmp_path, **names) for a in args]
     r = cli(*args, cwd=tmp_path)
     assert r.returncode == 2
     lines = r.stderr.strip().splitlines()
