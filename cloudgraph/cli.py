@@ -66,11 +66,12 @@ def _writable(out: str, suffix: str, flag: str) -> None:
     folder = path.resolve().parent
     if not folder.is_dir():
         raise CloudgraphError(f"output folder does not exist: {folder}")
-    existed = path.exists()
-    with open(path, "ab"):  # (an OSError names the file and why: main() prints it)
-        pass
-    if not existed:
-        path.unlink()
+    if os.path.lexists(path):  # (an OSError names the file and why: main() prints it)
+        with open(path, "ab"):  # (appends nothing: the file stays as it was)
+            pass
+        return
+    os.close(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644))  # made here ...
+    path.unlink()  # ... and removed: the render writes it
 
 
 def _checked_volume(scene):
@@ -80,15 +81,13 @@ def _checked_volume(scene):
     from .errors import SceneError
     from .options import MAX_VOXEL_TAU
     from .render import scene_volume
+    from .scene import voxel_depth_problem
 
     volume = scene_volume(scene)
-    d = scene.medium.density_scale
-    per_unit = float(volume.density.max(initial=0.0)) * float(max(volume.voxel_size))
-    if d * per_unit > MAX_VOXEL_TAU:
-        raise SceneError(
-            f"medium.density_scale: {d:g} makes the optical depth across one voxel {d * per_unit:.3g}, "
-            f"over the limit of {MAX_VOXEL_TAU:g}; use at most {MAX_VOXEL_TAU / per_unit:.4g}"
-        )
+    densest = float(volume.density.max(initial=0.0))
+    problem = voxel_depth_problem(scene.medium.density_scale, densest, max(volume.voxel_size), MAX_VOXEL_TAU)
+    if problem:
+        raise SceneError(f"medium.density_scale: {problem}")
     return volume
 
 
@@ -316,6 +315,7 @@ def main(argv: list[str] | None = None) -> int:
 def _fail(line: str) -> None:
     """One line on stderr, on a line of its own after an open progress bar."""
     print(("\n" if _BAR["open"] else "") + line, file=sys.stderr)
+    _BAR["open"] = False
 
 
 if __name__ == "__main__":

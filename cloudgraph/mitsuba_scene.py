@@ -191,8 +191,8 @@ def _rgb_image(path) -> np.ndarray:
 
     try:
         bitmap = mi.Bitmap(str(path))
-    except Exception as err:  # Mitsuba raises RuntimeError with the file's problem
-        raise SceneError(f"cannot read the environment map {path}: {str(err).splitlines()[-1]}") from None
+    except RuntimeError as err:  # Mitsuba's, with the file's problem
+        raise SceneError(f"cannot read the environment map {path}: {_last_line(err)}") from err
     bitmap = bitmap.convert(mi.Bitmap.PixelFormat.RGB, mi.Struct.Type.Float32, srgb_gamma=False)
     return np.array(bitmap, np.float32)
 
@@ -230,8 +230,8 @@ def envmap_emitter(path: str):
     if key not in _ENVMAPS:
         try:
             _ENVMAPS[key] = mi.load_dict({"type": "envmap", "filename": str(path)})
-        except Exception as err:  # Mitsuba raises RuntimeError with the file's problem
-            raise SceneError(f"cannot read the environment map {path}: {str(err).splitlines()[-1]}") from None
+        except RuntimeError as err:  # Mitsuba's, with the file's problem
+            raise SceneError(f"cannot read the environment map {path}: {_last_line(err)}") from err
     return _ENVMAPS[key]
 
 
@@ -258,5 +258,11 @@ def load_mitsuba_scene(scene: Scene, volume: Volume, integrator: dict | None = N
     spec = scene_dict(scene, volume, integrator)
     try:
         return mi.load_dict(spec)
-    except Exception as err:  # Mitsuba raises RuntimeError, with its source position first
-        raise SceneError(f"Mitsuba refuses the scene: {str(err).splitlines()[-1]}") from None
+    except RuntimeError as err:  # Mitsuba's: the plugin, then what it refuses
+        raise SceneError(f"Mitsuba refuses the scene: {_last_line(err)}") from err
+
+
+def _last_line(err: Exception) -> str:
+    """The last line of a Mitsuba error (its source positions come first)."""
+    lines = str(err).strip().splitlines()
+    return lines[-1] if lines else type(err).__name__

@@ -16,8 +16,9 @@ ESTIMATORS = ("gather", "free_flight", "march", "field")
 PHASE_ESTIMATORS = ("gather", "field")
 
 #: The largest optical depth across one voxel at a medium's densest point (density_scale x the
-#: densest value x the voxel's size): past it delta tracking takes unbounded steps, and a render
-#: or a precompute runs for hours where it should refuse (the HTTP API's default too).
+#: densest value x the voxel's size; scene.voxel_depth_problem): delta tracking takes steps in
+#: proportion to the optical depth it crosses, and past this a render or a precompute runs for
+#: hours where it should refuse (the HTTP API's default too).
 MAX_VOXEL_TAU = 100.0
 
 #: Graph quality presets (see ``cloudgraph.graph.PRESETS``).

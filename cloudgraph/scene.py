@@ -453,11 +453,27 @@ def parse_scene(data: dict | str, base_dir: str | Path | None = None) -> Scene:
     return scene
 
 
+def voxel_depth_problem(density_scale: float, value_max: float, voxel: float, limit: float) -> str | None:
+    """Why ``density_scale`` is refused where one voxel (``voxel`` world units) at the densest
+    ``value_max`` would be optically deeper than ``limit`` (options.MAX_VOXEL_TAU, or the API's
+    setting), or None: delta tracking takes steps in proportion to the optical depth it crosses,
+    and past the limit a render or a precompute runs for hours where it should refuse."""
+    per_unit = float(value_max) * float(voxel)  # optical depth of one voxel at density_scale 1
+    tau = density_scale * per_unit
+    if tau <= limit:
+        return None
+    return (
+        f"{density_scale:g} makes the optical depth across one voxel {tau:.3g} (densest value "
+        f"{value_max:.3g}, voxel {voxel:.3g} world units), over the limit of {limit:g}; use at most "
+        f"{limit / per_unit:.4g}"
+    )
+
+
 def load_scene(path: str | Path) -> Scene:
     """Reads a scene spec JSON file; ``volume.path`` is relative to the file's folder."""
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise SceneError(f"scene file not found: {path}") from None
     except OSError as err:

@@ -86,6 +86,11 @@ class Volume:
 # ------------------------------------------------------------------------ loading
 
 
+#: The voxel sizes a loaded volume may have, world units: outside them, float32 (Mitsuba's and
+#: Dr.Jit's) has no room for a medium's extent, its free paths and their products.
+VOXEL_SIZES = (1e-15, 1e15)
+
+
 def load_volume(path: str | Path, grid: str | None = None, scale: float = 1.0) -> Volume:
     """Reads a ``.vdb`` or ``.vol`` file into a :class:`Volume` placed in world space.
 
@@ -106,12 +111,13 @@ def load_volume(path: str | Path, grid: str | None = None, scale: float = 1.0) -
         vol = _load_vol(path)
     else:
         raise VolumeError(f"{path} is neither an OpenVDB (.vdb) nor a Mitsuba (.vol) volume file")
-    vol = vol.scaled(scale)
-    size = np.asarray(vol.voxel_size, float)
-    if not (np.all(np.isfinite(size)) and np.all(size > 0)):
+    with np.errstate(over="ignore", under="ignore", invalid="ignore"):  # (refused below, quietly)
+        vol = vol.scaled(scale)
+        size = np.asarray(vol.voxel_size, float)
+    if not np.all((size >= VOXEL_SIZES[0]) & (size <= VOXEL_SIZES[1])):  # (NaN too)
         raise VolumeError(
-            f"{path} at scale {scale:g} has voxels of size {size.tolist()}: a volume needs a finite, "
-            "non-zero extent on every axis"
+            f"{path} at scale {scale:g} has voxels of {size.tolist()} world units: a voxel must be "
+            f"{VOXEL_SIZES[0]:g} to {VOXEL_SIZES[1]:g} on every axis (Mitsuba computes in float32)"
         )
     return vol
 

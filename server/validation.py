@@ -21,6 +21,7 @@ from cloudgraph.scene import (
     SkySpec,
     SunskySpec,
     VolumeSpec,
+    voxel_depth_problem,
 )
 from cloudgraph.store import EnvironmentStore, VolumeStore
 from cloudgraph_service.errors import shown
@@ -152,16 +153,9 @@ def check_medium(medium: MediumSpec, grid: dict, scale: float, settings: Setting
     if "value_max" not in grid:
         return
     voxel = max(grid["voxel_size"]) * scale
-    per_unit = float(grid["value_max"]) * voxel  # optical depth per voxel at density_scale 1
-    tau = d * per_unit
-    if tau > settings.MAX_VOXEL_TAU:
-        most = settings.MAX_VOXEL_TAU / per_unit
-        raise InputError(
-            f"{where}.density_scale",
-            f"{d:g} makes the optical depth across one voxel {tau:.3g} (densest value "
-            f"{grid['value_max']:.3g}, voxel {voxel:.3g} world units), over the limit of "
-            f"{settings.MAX_VOXEL_TAU:g}; use at most {most:.4g}",
-        )
+    problem = voxel_depth_problem(d, grid["value_max"], voxel, settings.MAX_VOXEL_TAU)
+    if problem:
+        raise InputError(f"{where}.density_scale", problem)
 
 
 def check_depth(max_depth: int, settings: Settings, where: str) -> None:

@@ -221,7 +221,16 @@ def get_video(anim_id: str, redis: RedisDep):
     responses={
         200: {"description": "The frame", "content": binary("image/png")},
         **error_responses(
-            404, 409, 422, 503, about={404: "No such animation, or no such frame", 409: "Not rendered yet"}
+            404,
+            409,
+            410,
+            422,
+            503,
+            about={
+                404: "No such animation, or no such frame",
+                409: "Not rendered yet",
+                410: "The frame was removed: POST the animation again",
+            },
         ),
     },
 )
@@ -232,5 +241,8 @@ def get_frame(anim_id: str, index: int, redis: RedisDep):
     if not 0 <= index < job.meta["frames"]:
         raise HTTPException(404, f"frame {index} is outside 0..{job.meta['frames'] - 1}")
     if not p.is_file():
+        if status_of(job) == JobStatus.finished:
+            gone = f"frame {index} of animation {anim_id} is gone; start the animation again"
+            raise HTTPException(410, gone)
         raise HTTPException(409, f"frame {index} is not rendered yet")
     return FileResponse(p, media_type="image/png")

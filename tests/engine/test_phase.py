@@ -1,8 +1,9 @@
 """Henyey-Greenstein phase functions (scene spec v1.1 ``medium.phase``; docs/method.md,
-"Anisotropic scattering"): the spec and its errors, the keys, Mitsuba's reference, the phase's
-sampling, single scattering against the closed form in a slab, g = 0 as the isotropic scene, and
-the estimators that refuse it (the anisotropic cache against volpath, and the field's walks and
-view terms: test_phase_field.py).
+"Anisotropic scattering"): the spec and its errors, the keys, Mitsuba's reference and the phase's
+sampling, single scattering against the closed form in a slab (the field's and volpath's into the
+light), g = 0 as the isotropic scene, the field's view terms summed toward each camera, and the
+estimators that refuse the phase. The anisotropic cache against volpath and the field's walks:
+test_phase_field.py.
 """
 
 import numpy as np

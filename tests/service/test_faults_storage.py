@@ -46,7 +46,7 @@ def _finished_cache(c, body: dict) -> tuple[str, dict]:
     return cid, c.get(f"/v1/caches/{cid}").json()
 
 
-def test_an_animation_whose_video_was_removed_answers_410_not_500(service, fog):
+def test_an_animation_whose_video_or_frame_was_removed_answers_410_not_500(service, fog):
     body = {"scene": fog_scene(fog, 16), "orbit": {}, "frames": 2, "fps": 10, "quality": "draft"}
     with service.client(headers=AUTH) as c:
         r = c.post("/v1/animations", json=body)
@@ -54,12 +54,18 @@ def test_an_animation_whose_video_was_removed_answers_410_not_500(service, fog):
         anim = job_of(r)
         end, _ = wait_status(c, anim, 120)
         assert end["status"] == "finished", end
-        video = service.data_dir / "outputs" / "animations" / anim / "video.mp4"
+        folder = service.data_dir / "outputs" / "animations" / anim
+        video, frame = folder / "video.mp4", next(folder.glob("frame_*.png"))
         assert video.is_file()
         video.unlink()
+        frame.unlink()
         r = c.get(f"/v1/animations/{anim}/video")
         assert r.status_code == 410, r.text
         assert detail(r) == f"the video of animation {anim} is gone; start the animation again"
+        index = int(frame.stem.split("_")[1])
+        r = c.get(f"/v1/animations/{anim}/frames/{index}")
+        assert r.status_code == 410, r.text
+        assert detail(r) == f"frame {index} of animation {anim} is gone; start the animation again"
 
 
 @pytest.mark.parametrize("lost", ["field", "graph"])
