@@ -56,8 +56,8 @@ def _cmd_render(args: argparse.Namespace) -> None:
 
 
 def _writable(out: str, suffix: str, flag: str) -> None:
-    """A file of ``suffix`` that can be written at ``out``, checked by making it (and removing
-    it again if it was not there)."""
+    """A file of ``suffix`` that can be written at ``out``: one already there is opened for
+    appending (and left as it was), one that is not is made and removed again."""
     path = Path(out)
     if path.suffix.lower() != suffix:
         raise CloudgraphError(f"{flag} must name a {suffix} file, got {out!r}")
@@ -76,8 +76,8 @@ def _writable(out: str, suffix: str, flag: str) -> None:
 
 def _checked_volume(scene):
     """The scene's volume, refused where one voxel at its densest point is optically deeper
-    than options.MAX_VOXEL_TAU (as the HTTP API refuses it): delta tracking would take unbounded
-    steps there."""
+    than options.MAX_VOXEL_TAU (as the HTTP API refuses it): delta tracking takes as many steps
+    as the optical depth it crosses, and would run for hours."""
     from .errors import SceneError
     from .options import MAX_VOXEL_TAU
     from .render import scene_volume
