@@ -243,6 +243,24 @@ def volpath_dict(max_depth: int, rr: bool = False) -> dict:
     return d
 
 
+#: The fewest Dr.Jit worker threads :func:`set_threads` sets: with one, Mitsuba's EXR reader and
+#: writer (Mitsuba 3.9.1, Dr.Jit 1.5) wait on the pool for ever, and a render to EXR or an
+#: environment map hangs its worker.
+MIN_THREADS = 2
+
+
+def set_threads(n: int) -> int:
+    """Dr.Jit's worker threads: ``n`` (0: its default, one per core), at least MIN_THREADS.
+    Returns the count set (0 where the default was kept)."""
+    import drjit as dr
+
+    if n <= 0:
+        return 0
+    n = max(int(n), MIN_THREADS)
+    dr.set_thread_count(n)
+    return n
+
+
 def load_mitsuba_scene(scene: Scene, volume: Volume, integrator: dict | None = None):
     """Builds the Mitsuba scene (a variant must be set).
 

@@ -187,8 +187,12 @@ def _check_size(path: Path, dims: tuple[int, int, int]) -> None:
 
 
 def _clean(path: Path, density: np.ndarray) -> np.ndarray:
+    """The density grid, negative values read as 0; refused where it is not finite or holds no
+    positive value (a medium of nothing: every flight would leave it, and a graph has no nodes)."""
     if not np.isfinite(density).all():
         raise VolumeError(f"{path}: the density grid holds NaN or infinite values")
+    if density.max(initial=0.0) <= 0.0:
+        raise VolumeError(f"{path}: the density grid holds no positive value (negative ones read as 0)")
     return np.maximum(density, 0.0, out=density)
 
 
@@ -216,8 +220,6 @@ def _load_vol(path: Path) -> Volume:
     bmax = np.array(struct.unpack_from("<3f", raw, 36), float)
     data = np.frombuffer(raw, np.float32, nx * ny * nz, 48).reshape(nz, ny, nx).transpose(2, 1, 0)
     density = np.ascontiguousarray(data, dtype=np.float32)
-    if density.max(initial=0.0) <= 0.0:
-        raise VolumeError(f"{path}: the density grid is empty (all values zero)")
     # Voxel centres at bmin + (i + 0.5) * step, so the medium fills exactly [bmin, bmax].
     step = (bmax - bmin) / np.array([nx, ny, nz])
     m = np.diag([*step, 1.0])

@@ -21,7 +21,6 @@ from contextlib import contextmanager
 from functools import lru_cache
 
 import dask
-import drjit as dr
 import mitsuba as mi
 from distributed import Client, WorkerPlugin, as_completed
 
@@ -51,13 +50,12 @@ class CloudgraphVariant(WorkerPlugin):
 
     def setup(self, worker) -> None:
         from cloudgraph.heap import keep_freed_memory
-        from cloudgraph.mitsuba_scene import set_variant
+        from cloudgraph.mitsuba_scene import set_threads, set_variant
         from cloudgraph_service.settings import Settings
 
         keep_freed_memory()  # (the chunks' arrays reuse each other's pages)
         set_variant(self.variant)
-        if (threads := Settings.from_env().WORKER_THREADS) > 0:
-            dr.set_thread_count(threads)
+        set_threads(Settings.from_env().WORKER_THREADS)
 
 
 #: A run's builder on a Dask worker, made by the first of its chunks there: by the run's volume

@@ -57,7 +57,7 @@ class Settings(BaseSettings):
     UPLOAD_CHECK_S: float = 120.0  # reading an upload (in a child process) may take this long
     CACHE_MAX_GB: float = 20.0
     WORKER_RENDERERS: int = 4  # loaded radiance caches kept per worker
-    WORKER_THREADS: int = 0  # Dr.Jit threads per worker process (0: one per core)
+    WORKER_THREADS: int = 0  # Dr.Jit threads per worker process (0: one per core; 1 counts as 2)
     DASK_SCHEDULER: str | None = None  # tcp://HOST:8786: precomputes run there (docs/cluster.md)
 
     @field_validator("DATA_DIR", "CACHE_DIR")

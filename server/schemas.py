@@ -124,7 +124,7 @@ class AnimationCreate(_Body):
     keyframes: list[CameraSpec] | None = Field(None, description="cameras passed through, evenly in time")
     orbit: Orbit | None = None
     frames: int = Field(24, ge=1)
-    fps: float = Field(24.0, gt=0, le=120)
+    fps: float = Field(24.0, ge=1, le=120)  # (ffmpeg refuses a frame rate far below 1)
     integrator: Integrator = "graph"
     estimator: Estimator = "gather"
     quality: Quality = "default"

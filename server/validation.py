@@ -141,6 +141,8 @@ def grid_of(spec: VolumeSpec, volumes: VolumeStore, where: str) -> dict:
         raise InputError(f"{where}.grid", f"grid {name!r} holds {grid.get('type')} values, not densities")
     if "value_max" not in grid and name == info["grid"]:  # an upload described before grid stats
         grid.update(value_max=info["value_range"][1], voxel_size=info["voxel_size"])
+    if "value_max" in grid and not grid["value_max"] > 0:
+        raise InputError(f"{where}.grid", f"grid {name!r} holds no positive value: no medium to render")
     return grid
 
 

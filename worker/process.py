@@ -235,13 +235,10 @@ def run(running: Running, name: str) -> None:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     settings = Settings.from_env()
     keep_freed_memory()
-    from cloudgraph.mitsuba_scene import set_variant
+    from cloudgraph.mitsuba_scene import set_threads, set_variant
 
     variant = set_variant()
-    if settings.WORKER_THREADS > 0:
-        import drjit as dr
-
-        dr.set_thread_count(settings.WORKER_THREADS)
+    set_threads(settings.WORKER_THREADS)
     import cloudgraph.integrators.graph  # noqa: F401  (registers the integrator for this variant)
 
     # What jobs import (the engine's stages, scipy, OpenVDB, Dask's client where a cluster is

@@ -1,5 +1,8 @@
 """Mitsuba's volpath on scenes from the spec, against analytic expectations computed in numpy."""
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -165,3 +168,21 @@ def test_a_camera_inside_the_medium_sees_through_it(variant):
     assert expected.max() < 0.5  # every ray crosses more than half an optical depth
     assert abs(image.mean() / expected.mean() - 1) < 0.01, (image.mean(), expected.mean())
     np.testing.assert_allclose(image, expected, atol=0.07)  # 5 sigma of 1024 draws of 0 or 1
+
+
+def test_one_worker_thread_counts_as_two_so_exr_files_are_written_and_read(tmp_path):
+    # With Dr.Jit's pool at one thread, Mitsuba's EXR writer waits for ever (Mitsuba 3.9.1,
+    # Dr.Jit 1.5): a worker set to one thread hung every EXR render. In a process of its own,
+    # whose pool this test may set.
+    out = tmp_path / "a.exr"
+    code = (
+        "import numpy as np\n"
+        "from cloudgraph.image import read_exr, write_exr\n"
+        "from cloudgraph.mitsuba_scene import set_threads, set_variant\n"
+        "set_variant()\n"
+        "assert set_threads(1) == 2\n"
+        f"write_exr(np.ones((4, 4, 3), np.float32), {str(out)!r})\n"
+        f"print(read_exr({str(out)!r}).sum())\n"
+    )
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and r.stdout.strip() == "48.0", r.stderr

@@ -9,7 +9,7 @@ import pytest
 from cloudgraph.errors import VolumeError
 from cloudgraph.procedural import box_volume, noise_volume, sphere_volume
 from cloudgraph.vdb import vdb_grid_table
-from cloudgraph.volume import load_volume, volume_info, write_vdb, write_vol
+from cloudgraph.volume import Volume, load_volume, volume_info, write_vdb, write_vol
 
 from ..helpers import rotated_affine
 
@@ -153,6 +153,8 @@ def _as_double_grid(raw: bytes) -> bytes:
         ("too_big", "over the limit of 1000 voxels"),
         ("double", "'density' (double) have a type this OpenVDB build cannot read"),
         ("vol_truncated", "the .vol file is truncated"),
+        ("negative", "holds no positive value"),  # (accepted, then a build with no nodes)
+        ("vol_zero", "holds no positive value"),
     ],
 )
 def test_bad_volume_input_gets_one_clear_error(tmp_path, monkeypatch, data_dir, case, message):
@@ -183,6 +185,14 @@ def test_bad_volume_input_gets_one_clear_error(tmp_path, monkeypatch, data_dir, 
     elif case == "double":
         path.write_bytes(_as_double_grid(raw))
         assert vdb_grid_table(path) == [("density", "Tree_double_5_4_3")]
+    elif case == "negative":
+        g = vdb.FloatGrid()
+        g.name = "density"
+        g.fill((0, 0, 0), (3, 3, 3), -5.0, True)
+        vdb.write(str(path), grids=[g])
+    elif case == "vol_zero":
+        path = tmp_path / "v.vol"
+        write_vol(Volume(np.zeros((4, 4, 4), np.float32), (0, 0, 0), np.eye(4), "density"), path)
     elif case == "vol_truncated":
         path = tmp_path / "v.vol"
         write_vol(sphere_volume(8), path)

@@ -48,6 +48,8 @@ def test_bad_animation_bodies_are_422(client, fog):
     anim = {"scene": fog_scene(fog), "orbit": {}, "quality": "draft"}
     r = client.post("/v1/animations", json=anim | {"frames": 601})
     assert r.status_code == 422 and "frames: 601 is over the limit of 600" in detail(r)
+    r = client.post("/v1/animations", json=anim | {"fps": 1e-7})  # (was accepted; ffmpeg then failed)
+    assert r.status_code == 422 and detail(r).startswith("fps: "), r.text
     r = client.post("/v1/animations", json={k: v for k, v in anim.items() if k != "orbit"} | {"frames": 3})
     assert r.status_code == 422 and "exactly one of 'keyframes'" in detail(r)
     for path in ("/v1/animations/anim-nope", "/v1/animations/a.b", "/v1/animations/a.b/video"):
