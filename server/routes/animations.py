@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 from fastapi import APIRouter, HTTPException
 from fastapi.responses import FileResponse, JSONResponse, Response
+from pydantic import ValidationError
 
-from cloudgraph.scene import CameraSpec
+from cloudgraph.scene import CameraSpec, format_validation_error
 from cloudgraph_service.errors import shown
 from cloudgraph_service.protocol import (
     FRAME_FILE,
@@ -48,16 +49,20 @@ def camera_path(body: AnimationCreate) -> list[CameraSpec]:
             def lerp(x, y, t=t):
                 return tuple(float(v) for v in (1 - t) * np.asarray(x) + t * np.asarray(y))
 
-            out.append(
-                a.model_copy(
-                    update={
-                        "eye": lerp(a.eye, b.eye),
-                        "target": lerp(a.target, b.target),
-                        "up": lerp(a.up, b.up),
-                        "fov": (1 - t) * a.fov + t * b.fov,
-                    }
-                )
-            )
+            between = {
+                "eye": lerp(a.eye, b.eye),
+                "target": lerp(a.target, b.target),
+                "up": lerp(a.up, b.up),
+                "fov": (1 - t) * a.fov + t * b.fov,
+            }
+            try:  # (each keyframe is valid; a camera between two need not be: an up that turns over)
+                out.append(CameraSpec.model_validate(a.model_dump() | between))
+            except ValidationError as err:
+                raise InputError(
+                    f"keyframes[{k + 1}]",
+                    f"frame {len(out)}, between keyframes[{k}] and [{k + 1}], has no valid camera: "
+                    f"{format_validation_error(err)}",
+                ) from None
         return out
     target, up = np.asarray(base.target), np.asarray(base.up) / np.linalg.norm(base.up)
     offset = np.asarray(base.eye) - target

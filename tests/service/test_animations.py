@@ -42,6 +42,12 @@ def test_keyframes_of_differing_sizes_or_too_large_are_422(client, fog):
     body["keyframes"] = [a, b | {"width": 20}]
     r = client.post("/v1/animations", json=body)
     assert r.status_code == 422 and "frames of one video share a size" in detail(r)
+    # each keyframe valid, the frame between them not: an up that turns over passes through zero
+    body["keyframes"] = [a | {"up": [0, 1, 0]}, a | {"up": [0, -1, 0]}]
+    body["frames"] = 3
+    r = client.post("/v1/animations", json=body)
+    assert r.status_code == 422, r.text
+    assert detail(r).startswith("keyframes[1]: frame 1, between keyframes[0] and [1], has no valid camera")
 
 
 def test_bad_animation_bodies_are_422(client, fog):
