@@ -202,9 +202,39 @@ def _referenced(node, found: set[str]) -> set[str]:
     return found
 
 
+def _settings_limits(schemas: dict, settings: Settings) -> None:
+    """The bounds the server checks (settings and server/validation.py) written into the
+    component schemas, where the scene spec's own are wider (the engine's, for the CLI)."""
+    from .validation import MAX_COORD, MAX_DENSITY_SCALE, MIN_RADIUS, SCALE_RANGE
+
+    def bound(schema: str, prop: str, **limits) -> None:
+        node = schemas.get(schema, {}).get("properties", {}).get(prop)
+        if node is None:
+            return
+        for target in [v for v in node.get("anyOf", []) if v.get("type") == "number"] or [node]:
+            for key, value in limits.items():
+                target.pop("exclusiveMinimum" if key == "minimum" else "exclusiveMaximum", None)
+                target[key] = value
+
+    side = float(settings.MAX_IMAGE_SIDE)
+    bound("CameraSpec", "width", maximum=side)
+    bound("CameraSpec", "height", maximum=side)
+    bound("RenderSpec", "spp", maximum=float(settings.MAX_SPP))
+    bound("RenderSpec", "max_depth", maximum=float(settings.MAX_DEPTH))
+    bound("CacheCreate", "max_depth", maximum=float(settings.MAX_DEPTH))
+    bound("AnimationCreate", "frames", maximum=float(settings.MAX_FRAMES))
+    bound("MediumSpec", "density_scale", maximum=MAX_DENSITY_SCALE)
+    bound("Orbit", "radius", minimum=MIN_RADIUS, maximum=MAX_COORD)
+    bound("VolumeSpec", "scale", minimum=SCALE_RANGE[0], maximum=SCALE_RANGE[1])
+    for prop in ("eye", "target"):
+        for item in schemas.get("CameraSpec", {}).get("properties", {}).get(prop, {}).get("prefixItems", []):
+            item.update(minimum=-MAX_COORD, maximum=MAX_COORD)
+
+
 def openapi_document(app: FastAPI) -> dict:
     """FastAPI's OpenAPI document, less the component schemas that nothing refers to (as the
-    form FastAPI derives from the upload's signature, which that route describes itself)."""
+    form FastAPI derives from the upload's signature, which that route describes itself), with
+    the bounds this server's settings put on the scene spec."""
     if app.openapi_schema is None:
         doc = get_openapi(
             title=app.title, version=app.version, description=app.description, routes=app.routes
@@ -218,6 +248,7 @@ def openapi_document(app: FastAPI) -> dict:
             used |= more
         for name in set(schemas) - used:
             del schemas[name]
+        _settings_limits(schemas, app.state.settings)
         app.openapi_schema = doc
     return app.openapi_schema
 

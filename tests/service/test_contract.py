@@ -188,3 +188,19 @@ def test_a_generated_client_uploads_precomputes_and_renders(contract, document, 
         assert r.status_code == 200, r.content
     assert isinstance(r.parsed, types.File)
     assert png_size(r.parsed.payload.read()) == (32, 32)
+
+
+def test_the_openapi_document_states_this_server_s_limits(tmp_path):
+    # The scene spec's own bounds are the engine's (the CLI's: 4096 pixels a side, 65536 spp);
+    # a server answers 422 past its settings, and its document says so
+    from cloudgraph_service.settings import Settings
+    from server.main import create_app
+
+    settings = Settings(DATA_DIR=tmp_path, MAX_IMAGE_SIDE=512, MAX_SPP=100, MAX_FRAMES=50)
+    schemas = create_app(settings).openapi()["components"]["schemas"]
+    camera, render = schemas["CameraSpec"]["properties"], schemas["RenderSpec"]["properties"]
+    assert camera["width"]["maximum"] == camera["height"]["maximum"] == 512
+    assert render["spp"]["maximum"] == 100 and render["max_depth"]["maximum"] == 1000
+    assert schemas["AnimationCreate"]["properties"]["frames"]["maximum"] == 50
+    assert schemas["VolumeSpec"]["properties"]["scale"]["minimum"] == 1e-6
+    assert all(item["maximum"] == 1e6 for item in camera["eye"]["prefixItems"])
