@@ -126,6 +126,8 @@ def describe(job: Job) -> JobPublic:
     st = status_of(job)
     meta = job.meta
     error = meta.get("error")
+    if st == JobStatus.canceled and not error:  # cancelled while queued: no worker said so
+        error = "cancelled by a client"
     if st == JobStatus.failed and not error:  # e.g. found abandoned by RQ: no message of ours
         error = f"job {job.id} failed; the service log has the details under that id"
     fraction = float(meta.get("fraction", 0.0))

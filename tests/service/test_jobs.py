@@ -109,6 +109,7 @@ def test_a_cancelled_queued_job_never_runs_and_a_full_queue_answers_429(idle):
         job = job_of(first)
         r = c.post(f"/v1/jobs/{job}/cancel")
         assert r.status_code == 200 and r.json()["status"] == "canceled"
+        assert r.json()["error"] == "cancelled by a client", r.json()  # (as a running one's says)
         r = c.post(f"/v1/jobs/{job}/cancel")
         assert r.status_code == 409 and "already ended (canceled)" in detail(r)
 
