@@ -40,7 +40,7 @@ from scipy.spatial import cKDTree
 
 from .chunks import placed
 from .field_file import RadianceField, component_names, pack_array, shape_name
-from .field_grid import FieldPoints, MsGrid, make_ms_grid
+from .field_grid import FieldPoints, MsGrid, make_ms_grid, scattered
 from .field_ms import (
     MS_LIGHT_RANGE,
     MS_STEP,
@@ -237,7 +237,7 @@ def bake_field(
     gathered, walked = [], []
     for c, lk in enumerate(looked):
         G = placed(lk, len(points), 3)
-        G = _scatter(near, G, (nz, ny, nx, 3))
+        G = scattered(near, G, (nz, ny, nx, 3))
         inputs = {"points": q, "G": G, "step": step, "sky": np.array([int(lights.kind(c) == "sky")])}
         if sun_exact and lights.kind(c) == "directional":  # (component c is directional light c)
             # the sun's part of G read where the march is, from tau_light as the camera's march
@@ -281,7 +281,7 @@ def bake_field(
     t0 = time.perf_counter()
     width = [3 + len(SHAPE_DEGREES) if c in walked else 3 for c in range(len(gathered))]
     ms = [
-        _scatter(ms_near, placed(g, len(q), n), (*ms_shape[::-1], n))
+        scattered(ms_near, placed(g, len(q), n), (*ms_shape[::-1], n))
         for g, n in zip(gathered, width, strict=True)
     ]
     mask = ms_near.reshape(ms_shape[::-1])
@@ -471,13 +471,6 @@ def _halve(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
     total = v.reshape(mz, 2, my, 2, mx, 2, -1).sum(axis=(1, 3, 5))
     count = m.reshape(mz, 2, my, 2, mx, 2).sum(axis=(1, 3, 5))[..., None]
     return np.ascontiguousarray(np.where(count > 0, total / np.maximum(count, 1), 0.0), np.float32)
-
-
-def _scatter(mask: np.ndarray, values: np.ndarray, shape) -> np.ndarray:
-    """A zero array of ``shape`` with ``values`` at the points where the flat ``mask`` is set."""
-    out = np.zeros((mask.size, *values.shape[1:]), np.float32)
-    out[mask.ravel()] = values
-    return out.reshape(shape)
 
 
 def fill_unreached(G: np.ndarray, points: np.ndarray, tree: cKDTree | None, node_G: np.ndarray) -> np.ndarray:

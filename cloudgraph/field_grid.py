@@ -119,3 +119,10 @@ def make_ms_grid(fp: FieldPoints, coarsen: int, max_points: int) -> MsGrid:
     units = unit_points(shape)
     points = to_world(fp.unit_to_world, units[ms_near]).astype(np.float32)
     return MsGrid(k, shape, ms_near, points, units.astype(np.float32))
+
+
+def scattered(mask: np.ndarray, values: np.ndarray, shape) -> np.ndarray:
+    """A zero array of ``shape`` with ``values`` at the points where the flat ``mask`` is set."""
+    out = np.zeros((mask.size, *values.shape[1:]), np.float32)
+    out[mask.ravel()] = values
+    return out.reshape(shape)

@@ -7,18 +7,14 @@ medium and the lights only: a precompute puts it out first, and it runs beside t
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
 from .chunks import placed
+from .field_grid import FieldPoints, scattered
 from .light_depth import FINE_POWER, TAU_MAX, TAU_POWER, fine_depth, fine_shape, fit_depth
 from .tracing import step_length, towards_light
-
-if TYPE_CHECKING:
-    from .field_grid import FieldPoints
 
 #: Light march step, in field voxels (midpoint rule).
 TAU_STEP = 0.5
@@ -49,9 +45,7 @@ def light_depths(fp: FieldPoints, marched: list) -> tuple[list, float]:
     taus = []
     for results in marched:  # (a sun's: the grid points', then the sub-voxel samples')
         tau = placed(results, len(fp.points) + len(fp.sub), 1)[:, 0]
-        tau_grid = np.zeros(fp.near.size, np.float32)
-        tau_grid[fp.near] = tau[: len(fp.points)]
-        tau_grid = tau_grid.reshape(nz, ny, nx)
+        tau_grid = scattered(fp.near, tau[: len(fp.points)], (nz, ny, nx))
         samples = tau[len(fp.points) :]
         if fine:
             taus.append(fine_depth(tau_grid, fp.near.reshape(nz, ny, nx), fp.sub_coords, samples))
