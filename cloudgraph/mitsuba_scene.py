@@ -11,7 +11,7 @@ import os
 import numpy as np
 
 from .errors import SceneError
-from .scene import CameraSpec, PhaseSpec, Scene
+from .scene import CameraSpec, PhaseSpec, Scene, envmap_problem
 from .sunsky import expanded, sunsky_dict
 from .volume import Volume
 
@@ -222,16 +222,21 @@ def envmap_emitter(path: str):
     from it with Mitsuba's own code, so its orientation and importance sampling are volpath's.
 
     Raises:
-        SceneError: the file is not an image Mitsuba can read as an environment.
+        SceneError: the file is not an image Mitsuba can read as an environment, or its pixels
+            are not radiance (scene.envmap_problem).
     """
     import mitsuba as mi
 
     key = (str(path), mi.variant())
     if key not in _ENVMAPS:
         try:
-            _ENVMAPS[key] = mi.load_dict({"type": "envmap", "filename": str(path)})
+            problem = envmap_problem(np.array(mi.Bitmap(str(path)), np.float32))
+            if problem is None:
+                _ENVMAPS[key] = mi.load_dict({"type": "envmap", "filename": str(path)})
         except RuntimeError as err:  # Mitsuba's, with the file's problem
             raise SceneError(f"cannot read the environment map {path}: {_last_line(err)}") from err
+        if problem:
+            raise SceneError(f"the environment map {path} {problem}")
     return _ENVMAPS[key]
 
 
@@ -271,8 +276,10 @@ def load_mitsuba_scene(scene: Scene, volume: Volume, integrator: dict | None = N
     import mitsuba as mi
 
     for light in scene.lights or ():
-        if light.type == "envmap" and light.path is not None and not os.path.isfile(light.path):
-            raise SceneError(f"environment map not found: {light.path}")
+        if light.type == "envmap" and light.path is not None:
+            if not os.path.isfile(light.path):
+                raise SceneError(f"environment map not found: {light.path}")
+            envmap_emitter(str(light.path))  # (its pixels checked: scene.envmap_problem)
     spec = scene_dict(scene, volume, integrator)
     try:
         return mi.load_dict(spec)

@@ -469,6 +469,26 @@ def voxel_depth_problem(density_scale: float, value_max: float, voxel: float, li
     )
 
 
+#: The largest radiance an environment map's pixel may hold: times the largest ``scale``
+#: (EnvmapSpec, 1e6) and summed over the largest map (store.MAX_ENVMAP_PIXELS) it stays finite
+#: in float32 (a map of 3e38 at scale 1e6 rendered inf).
+MAX_ENVMAP_RADIANCE = 1e24
+
+
+def envmap_problem(pixels) -> str | None:
+    """Why an environment map's pixels are refused (negative, not finite, or over
+    MAX_ENVMAP_RADIANCE), or None."""
+    import numpy as np
+
+    pixels = np.asarray(pixels)
+    if not np.isfinite(pixels).all() or (pixels < 0).any():
+        return "has negative or non-finite pixels: an environment map's radiance is >= 0"
+    peak = float(pixels.max(initial=0.0))
+    if peak > MAX_ENVMAP_RADIANCE:
+        return f"has a pixel of radiance {peak:.3g}, over the limit of {MAX_ENVMAP_RADIANCE:g}"
+    return None
+
+
 def load_scene(path: str | Path) -> Scene:
     """Reads a scene spec JSON file; ``volume.path`` is relative to the file's folder."""
     path = Path(path)

@@ -21,6 +21,7 @@ from typing import BinaryIO
 
 from .errors import VolumeError
 from .files import atomic_writer
+from .scene import envmap_problem
 from .vdb import VDB_MAGIC
 from .volume import volume_info
 
@@ -163,11 +164,9 @@ class EnvironmentStore(VolumeStore):
             raise VolumeError(
                 f"{tmp} is {width}x{height}: a lat-long environment map is twice as wide as high"
             )
-        pixels = np.array(bitmap, np.float32)
-        if not np.isfinite(pixels).all() or (pixels < 0).any():
-            raise VolumeError(
-                f"{tmp} has negative or non-finite pixels: an environment map's radiance is >= 0"
-            )
+        problem = envmap_problem(np.array(bitmap, np.float32))
+        if problem:
+            raise VolumeError(f"{tmp} {problem}")
         return {"width": int(width), "height": int(height), "channels": int(bitmap.channel_count())}, ".exr"
 
 

@@ -35,7 +35,8 @@ def _seconds(why: str) -> dict:
 
 
 #: What each error status means on this API, and the headers it comes with. (A method that a
-#: path does not take is 405 with ``Allow``, from ``main.AllowMethods``: no operation to document.)
+#: path does not take is 405 with ``Allow``, and a path that no route has 404, both from
+#: ``main.AllowMethods``: no operation to document.)
 ERRORS: dict[int, tuple[str, dict]] = {
     400: ("The body cannot be parsed: JSON that is not UTF-8, or a broken multipart form", {}),
     401: (
@@ -46,6 +47,7 @@ ERRORS: dict[int, tuple[str, dict]] = {
     409: ("The resource exists but is not ready for this (its job has not finished)", {}),
     410: ("The resource's file is gone (evicted); ask for it again", {}),
     413: ("The request body is over its limit (MAX_UPLOAD_MB for uploads, MAX_BODY_KB for JSON)", {}),
+    415: ("The body's Content-Type is not the one this operation reads (the message names it)", {}),
     422: ("A field is missing, malformed or out of its range; the message names it", {}),
     429: (
         "The render queue is full",

@@ -139,53 +139,92 @@ class RequireKey:
         headers = dict(scope["headers"])
         if key_is_valid(headers.get(b"authorization", b"").decode("latin-1"), self.keys):
             return await self.app(scope, receive, send)
-        declared = headers.get(b"content-length", b"").decode("latin-1")
-        small = declared.isdigit() and int(declared) <= LimitBody.DRAIN
-        chunked = b"chunked" in headers.get(b"transfer-encoding", b"").lower()
-        extra = {} if small or not (declared or chunked) else {"Connection": "close"}
-        response = JSONResponse({"detail": UNAUTHORIZED}, status_code=401, headers={**CHALLENGE, **extra})
-        await response(scope, receive, send)
-        if small:
-            while (await receive()).get("more_body"):
-                pass
+        await _answer(
+            scope, receive, send, JSONResponse({"detail": UNAUTHORIZED}, status_code=401, headers=CHALLENGE)
+        )
 
 
 class AllowMethods:
-    """Answers a method that a path does not take with 405 and ``Allow``, and OPTIONS with 204 and
-    ``Allow``: the methods that the OpenAPI document gives the path. Without it the web page's
-    mount at / would take such requests and answer for the API."""
+    """Answers what no route takes before anything reads the body: a method that a path does not
+    take with 405 and ``Allow``, and OPTIONS with 204 and ``Allow`` (the methods that the OpenAPI
+    document gives the path); a path under /v1 that no route has with 404; a body whose
+    Content-Type the operation does not read with 415 naming the one it does (a JSON scene sent
+    as ``curl -d``'s form encoding read as "not an object"). Without it the web page's mount at /
+    would take such requests and answer for the API."""
 
     def __init__(self, app, openapi: Callable[[], dict]):
         self.app, self.openapi = app, openapi
-        self.paths: list[tuple[re.Pattern, set[str]]] | None = None
+        self.paths: list[tuple[re.Pattern, dict[str, set[str]]]] | None = None
 
-    def allowed(self, scope) -> tuple[bool, set[str]]:
-        """(whether this path takes this method, the methods it takes; none: not an API path)."""
+    def operations(self, scope) -> dict[str, set[str]]:
+        """The methods this path takes, each with the media types of its body (none: no body);
+        empty where no route has the path."""
         if self.paths is None:  # the document is complete once the app serves requests
             paths = self.openapi()["paths"]
-            self.paths = [(compile_path(p)[0], {m.upper() for m in ops}) for p, ops in paths.items()]
-        for regex, methods in self.paths:
+            self.paths = [
+                (
+                    compile_path(p)[0],
+                    {m.upper(): set(op.get("requestBody", {}).get("content", {})) for m, op in ops.items()},
+                )
+                for p, ops in paths.items()
+            ]
+        for regex, operations in self.paths:
             if regex.match(scope["path"]):
-                return scope["method"] in methods, methods
-        return False, set()
+                return operations
+        return {}
 
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
-        taken, methods = self.allowed(scope)
-        if taken or not methods:
+        path, method = scope["path"], scope["method"]
+        operations = self.operations(scope)
+        if not operations:
+            if path == "/v1" or path.startswith("/v1/"):
+                detail = f"no API route {path}; the routes are in api.md and at /docs"
+                return await _answer(scope, receive, send, JSONResponse({"detail": detail}, status_code=404))
             return await self.app(scope, receive, send)
-        allow = ", ".join(sorted(methods))
-        method = scope["method"]
+        if method in operations:
+            accepted = operations[method]
+            sent = (
+                dict(scope["headers"])
+                .get(b"content-type", b"")
+                .decode("latin-1")
+                .split(";")[0]
+                .strip()
+                .lower()
+            )
+            if not accepted or not sent or sent in accepted:
+                return await self.app(scope, receive, send)
+            want = " or ".join(sorted(accepted))
+            detail = f"{method} {path} reads a body of Content-Type {want}, not {sent}"
+            return await _answer(scope, receive, send, JSONResponse({"detail": detail}, status_code=415))
+        allow = ", ".join(sorted(operations))
         if method == "OPTIONS":
             response = Response(status_code=204, headers={"Allow": f"{allow}, OPTIONS"})
         else:
             response = JSONResponse(
-                {"detail": f"{method} is not allowed on {scope['path']}; it takes {allow}"},
+                {"detail": f"{method} is not allowed on {path}; it takes {allow}"},
                 status_code=405,
                 headers={"Allow": allow},
             )
         await response(scope, receive, send)
+
+
+async def _answer(scope, receive, send, response: Response) -> None:
+    """Sends ``response`` to a request whose body is left unread: a declared body up to
+    ``LimitBody.DRAIN`` is read and dropped after it (a client that sends the body whole before
+    reading sees the answer on a connection that stays open), a larger one closes the
+    connection."""
+    headers = dict(scope["headers"])
+    declared = headers.get(b"content-length", b"").decode("latin-1")
+    small = declared.isdigit() and int(declared) <= LimitBody.DRAIN
+    chunked = b"chunked" in headers.get(b"transfer-encoding", b"").lower()
+    if not small and (declared or chunked):
+        response.headers["Connection"] = "close"
+    await response(scope, receive, send)
+    if small:
+        while (await receive()).get("more_body"):
+            pass
 
 
 def _referenced(node, found: set[str]) -> set[str]:

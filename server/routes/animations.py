@@ -113,7 +113,7 @@ def check_animation(body: AnimationCreate, settings, volumes) -> None:
     response_description="The animation's job, queued",
     responses={
         202: {"headers": {"Location": {"description": "the job's URL", "schema": {"type": "string"}}}},
-        **error_responses(400, 404, 413, 422, 429, 503, about={404: "No volume with that id"}),
+        **error_responses(400, 404, 413, 415, 422, 429, 503, about={404: "No volume with that id"}),
     },
 )
 def create_animation(

@@ -123,7 +123,7 @@ def _cache_job(redis, cid: str) -> Job:
             "description": "The precompute is queued or running",
             "headers": {"Location": {"description": "the precompute's URL", "schema": {"type": "string"}}},
         },
-        **error_responses(400, 404, 413, 422, 429, 503, about={404: "No volume with that id"}),
+        **error_responses(400, 404, 413, 415, 422, 429, 503, about={404: "No volume with that id"}),
     },
 )
 def create_cache(

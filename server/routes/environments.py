@@ -30,6 +30,7 @@ router = APIRouter(prefix="/environments", tags=["environments"])
         **error_responses(
             400,
             413,
+            415,
             422,
             507,
             about={

@@ -117,6 +117,7 @@ def _render(body: RenderCreate, redis, queue, settings, volumes):
             400,
             404,
             413,
+            415,
             422,
             429,
             503,

@@ -131,6 +131,7 @@ async def receive_upload(request: Request, file: UploadFile | None, settings, st
         **error_responses(
             400,
             413,
+            415,
             422,
             507,
             about={

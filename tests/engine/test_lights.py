@@ -442,6 +442,20 @@ def test_an_envmap_path_is_relative_to_the_scene_file_and_must_be_readable(varia
     (tmp_path / "sky.exr").write_bytes(b"not an image")
     with pytest.raises(SceneError, match="cannot read the environment map"):
         envmap_emitter(str(tmp_path / "sky.exr"))
+    # radiance that a scale of up to 1e6 takes past float32 (it rendered inf), or none at all
+    from cloudgraph.image import write_exr
+    from cloudgraph.mitsuba_scene import load_mitsuba_scene
+
+    for name, value, words in (
+        ("hot", 3e38, r"radiance 3e\+38, over the limit of 1e\+24"),
+        ("nan", np.nan, "non-finite"),
+    ):
+        write_exr(np.full((8, 16, 3), value, np.float32), tmp_path / f"{name}.exr")
+        bad = parse_scene({**BASE, "lights": [{"type": "envmap", "path": f"{name}.exr"}]}, base_dir=tmp_path)
+        with pytest.raises(SceneError, match=words):  # the engine's reader (lighting, the bake)
+            envmap_emitter(bad.lights[0].path)
+        with pytest.raises(SceneError, match=words):  # volpath's scene
+            load_mitsuba_scene(bad, sphere_volume(8))
 
 
 def test_a_constant_envmap_is_the_uniform_sky_of_its_radiance(variant, tmp_path):

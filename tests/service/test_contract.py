@@ -87,6 +87,31 @@ def test_options_and_unknown_methods_answer_with_allow(contract):
         assert "PUT is not allowed" in r.json()["detail"]
 
 
+def test_an_unknown_path_and_a_body_of_another_type_are_named(contract):
+    """A path under /v1 that no route has is a 404 whatever the method (the page's mount at /
+    answered a POST there with 405), and a body of a Content-Type the operation does not read a
+    415 naming the one it does (``curl -d`` sends a JSON scene form-encoded: it read as "not an
+    object"), before the key is checked or the body read."""
+    with contract.client() as c:
+        for method in ("GET", "POST", "DELETE"):
+            r = c.request(method, "/v1/renderz")
+            assert r.status_code == 404 and "no API route /v1/renderz" in r.json()["detail"], (method, r.text)
+        scene = json.dumps(fog_scene("a" * 64)).encode()
+        for path, sent, want in (
+            ("/v1/renders", "application/x-www-form-urlencoded", "application/json"),
+            ("/v1/caches", "text/plain", "application/json"),
+            ("/v1/volumes", "application/octet-stream", "multipart/form-data"),
+        ):
+            r = c.post(path, content=scene, headers={"Content-Type": sent})
+            assert r.status_code == 415, (path, r.text)
+            assert f"Content-Type {want}, not {sent}" in r.json()["detail"]
+        auth = {"Authorization": f"Bearer {KEY}"}
+        r = c.post(
+            "/v1/renders", content=b"{", headers={"Content-Type": "application/json; charset=utf-8"} | auth
+        )
+        assert r.status_code == 422  # the type is right: the JSON is not
+
+
 def test_schemathesis_finds_no_answer_the_document_does_not_describe(contract, tmp_path):
     config = tmp_path / "schemathesis.toml"
     config.write_text(SCHEMATHESIS_TOML)

@@ -12,13 +12,14 @@ from ..harness import detail, fog_scene, wait_job
 @pytest.fixture(scope="module")
 def maps(variant, tmp_path_factory) -> dict:
     """.exr files written here: a 64 x 32 gradient (bright at the top row, +y), a square one, a
-    2 MiB one of noise, and a file that is not an image."""
+    2 MiB one of noise, one too bright to scale, and a file that is not an image."""
     from cloudgraph.image import write_exr
 
     d = tmp_path_factory.mktemp("maps")
     ramp = np.linspace(2.0, 0.2, 32, dtype=np.float32)[:, None, None] * np.ones((32, 64, 3), np.float32)
     write_exr(ramp, d / "sky.exr")
     write_exr(np.ones((32, 32, 3), np.float32), d / "square.exr")
+    write_exr(np.full((32, 64, 3), 3e38, np.float32), d / "blinding.exr")  # (inf once scaled)
     write_exr(np.random.default_rng(1).random((512, 1024, 3), dtype=np.float32), d / "big.exr")
     (d / "notes.exr").write_text("not an image")
     return {p.stem: p for p in d.iterdir()}
@@ -46,6 +47,7 @@ def test_an_environment_map_is_stored_by_its_bytes_and_described(client, maps):
     [
         ("notes", "notes.exr is not an OpenEXR file"),
         ("square", "square.exr is 32x32: a lat-long environment map is twice as wide as high"),
+        ("blinding", "blinding.exr has a pixel of radiance 3e+38, over the limit of 1e+24"),
     ],
 )
 def test_an_upload_that_is_not_a_lat_long_exr_is_422(client, maps, name, words):

@@ -49,8 +49,10 @@ def test_a_file_that_is_no_volume_is_422_naming_the_upload(svc, client, tmp_path
     empty.write_bytes(b"")
     r = upload(client, empty)
     assert r.status_code == 422 and "upload is empty" in detail(r)
-    r = client.post("/v1/volumes", data={"name": "x"})
+    r = client.post("/v1/volumes", files={"other": ("a.vdb", b"x")})
     assert r.status_code == 422 and "multipart form field named 'file'" in detail(r)
+    r = client.post("/v1/volumes", data={"name": "x"})  # (a form, not multipart)
+    assert r.status_code == 415 and "Content-Type multipart/form-data, not application/x-www" in detail(r)
 
 
 def test_unknown_volumes_are_404(client):
