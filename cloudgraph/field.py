@@ -112,7 +112,7 @@ def ms_grid(fp: FieldPoints, walked: bool) -> MsGrid:
     phase, on a grid of up to MS_WALK_POINTS points; else MS_MAX_POINTS), made once for ``fp``
     (:func:`_once`): a precompute makes it while the graph is built, and a relight in this process
     reuses it with the grid points."""
-    return _once(fp, make_ms_grid, MS_COARSEN, MS_WALK_POINTS if walked else MS_MAX_POINTS)
+    return _once(fp, make_ms_grid, MS_COARSEN, MS_WALK_POINTS if walked else MS_MAX_POINTS, not walked)
 
 
 def packed_depth(tau: np.ndarray):

@@ -105,14 +105,39 @@ def coarse_mask(near: np.ndarray, shape, k: int) -> np.ndarray:
     return maximum_filter(coarse, size=3, mode="constant").ravel()
 
 
-def make_ms_grid(fp: FieldPoints, coarsen: int, max_points: int) -> MsGrid:
+def read_mask(dense: np.ndarray, shape) -> np.ndarray:
+    """Flat mask of the points of a grid of ``shape`` (mx, my, mz) over the same unit cube that
+    trilinear interpolation (clamped at the faces, as a texture is) reads anywhere the fine grid's
+    interpolation of ``dense`` ((nz, ny, nx) bool) is not zero: within one fine step, on each
+    axis, of a point of ``dense``. Per axis the fine points d reach the coarse points from
+    floor(c(d - 1)) to floor(c(d + 1)) + 1, c the coarse coordinate of a fine one (open at the
+    ends: a corner of weight 0 is not read); a point of the grid is read where all three axes'
+    reach it from one point of ``dense``."""
+    out = dense.astype(np.float32)
+    for axis, m in enumerate(shape[::-1]):  # (z, y, x)
+        n = dense.shape[axis]
+        d = np.arange(n)
+        c_lo = (d - 0.5 + 1e-4) * m / n - 0.5  # (coarse coordinate of fine x = d - 1, just inside)
+        c_hi = (d + 1.5 - 1e-4) * m / n - 0.5  # (of x = d + 1)
+        lo = np.clip(np.floor(c_lo), 0, m - 1)
+        hi = np.clip(np.floor(c_hi) + 1, 0, m - 1)
+        j = np.arange(m)[:, None]
+        reach = ((j >= lo[None, :]) & (j <= hi[None, :])).astype(np.float32)  # (m, n)
+        out = np.moveaxis(np.tensordot(reach, out, axes=([1], [axis])), 0, axis)
+    return (out > 0).ravel()
+
+
+def make_ms_grid(fp: FieldPoints, coarsen: int, max_points: int, exact: bool = False) -> MsGrid:
     """The multiple-scattering grid of ``fp``: ``coarsen`` times coarser per axis, or coarser
-    still until at most ``max_points`` of its points are gathered."""
+    still until at most ``max_points`` of its points are gathered. ``exact``: only the points
+    that the camera's interpolation reads (:func:`read_mask`; an isotropic field's L_ms, kept at
+    this grid's resolution), else :func:`coarse_mask`'s, a point further out (the walks' view
+    terms are halved again, and a half-resolution point reads its block's)."""
     nx, ny, nz = fp.shape
     near, k = fp.near.reshape(nz, ny, nx), coarsen
     while True:
         shape = tuple(-(-n // k) for n in fp.shape)
-        ms_near = coarse_mask(near, shape, k)
+        ms_near = read_mask(fp.sigma_t > 0, shape) if exact else coarse_mask(near, shape, k)
         if ms_near.sum() <= max_points:
             break
         k += 1
