@@ -68,10 +68,11 @@ def graph_key(vol_id: str, density_scale: float, build_params: dict) -> str:
 #: since they take the beam's orders as a control variate (phase.BEAM_CV_ORDERS), 8 since a
 #: large cloud's grid is finer, with fewer walks a point (field.MS_WALK_POINTS), and the light
 #: factor's P_0 is the walks' own (field_ms.WALK_LIGHT_POWER_0), 9 since the degree-3 harmonics
-#: are at three quarters of their weight (phase.SHAPE_HALF).
+#: are at three quarters of their weight (phase.SHAPE_HALF), 10 since the walks take only the
+#: points that the camera's interpolation reads (field_grid.read_mask).
 #: Its caches' radiance keys hold it, so that fields baked before are baked again; isotropic keys
 #: are as they were.
-PHASE_FIELD_VERSION = 9
+PHASE_FIELD_VERSION = 10
 
 
 def radiance_key(

@@ -36,11 +36,12 @@ import weakref
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
 from .chunks import placed
 from .field_file import RadianceField, component_names, pack_array, shape_name
-from .field_grid import FieldPoints, MsGrid, make_ms_grid, scattered
+from .field_grid import FieldPoints, MsGrid, make_ms_grid, read_mask, scattered
 from .field_ms import (
     MS_LIGHT_RANGE,
     MS_STEP,
@@ -112,7 +113,7 @@ def ms_grid(fp: FieldPoints, walked: bool) -> MsGrid:
     phase, on a grid of up to MS_WALK_POINTS points; else MS_MAX_POINTS), made once for ``fp``
     (:func:`_once`): a precompute makes it while the graph is built, and a relight in this process
     reuses it with the grid points."""
-    return _once(fp, make_ms_grid, MS_COARSEN, MS_WALK_POINTS if walked else MS_MAX_POINTS, not walked)
+    return _once(fp, make_ms_grid, MS_COARSEN, MS_WALK_POINTS if walked else MS_MAX_POINTS)
 
 
 def packed_depth(tau: np.ndarray):
@@ -305,7 +306,7 @@ def bake_field(
                 ms[c] = (ms[c] / light_factor(tau, power, MS_LIGHT_RANGE)).astype(np.float32)
                 if c in views:
                     views[c] = views[c] / light_factor(tau, [view_power], MS_LIGHT_RANGE)
-    shapes = {c: _halve(v, mask) for c, v in views.items()}  # (smooth: half the resolution)
+    shapes = {c: _halve(v, mask, fp.sigma_t > 0) for c, v in views.items()}  # (smooth: half the resolution)
     progress("field", 1.0)
     t_ms += time.perf_counter() - t0
 
@@ -459,18 +460,26 @@ def _shape_entry(name: str, lights: Lights, c: int, light_power: float) -> dict:
     return {"array": name, "frame": frame, "light_power": light_power}
 
 
-def _halve(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+def _halve(values: np.ndarray, mask: np.ndarray, dense: np.ndarray) -> np.ndarray:
     """(mz, my, mx, C) grid values at half the resolution per axis (rounded up): the mean of each
-    2^3 block's points of ``mask``. Measured on the bench sphere at g = 0.85: the view's terms at
-    half resolution render as at full (binned relMAE 7.75 / 4.29 % side / back-lit against 7.71 /
+    2^3 block's points of ``mask``; a point that the camera's interpolation reads (where the
+    field grid's ``dense`` is, :func:`~cloudgraph.field_grid.read_mask`) whose block holds none
+    takes the nearest block's that does (a half-resolution point reaches two field voxels past
+    the points gathered). Measured on the bench sphere at g = 0.85: the view's terms at half
+    resolution render as at full (binned relMAE 7.75 / 4.29 % side / back-lit against 7.71 /
     4.13 %), in a fifth of the bytes."""
     pads = [(0, n % 2) for n in mask.shape]
     m = np.pad(mask.astype(np.float64), pads)
     v = np.pad(values * mask[..., None], pads + [(0, 0)])
     mz, my, mx = (n // 2 for n in m.shape)
     total = v.reshape(mz, 2, my, 2, mx, 2, -1).sum(axis=(1, 3, 5))
-    count = m.reshape(mz, 2, my, 2, mx, 2).sum(axis=(1, 3, 5))[..., None]
-    return np.ascontiguousarray(np.where(count > 0, total / np.maximum(count, 1), 0.0), np.float32)
+    count = m.reshape(mz, 2, my, 2, mx, 2).sum(axis=(1, 3, 5))
+    half = np.where(count[..., None] > 0, total / np.maximum(count, 1)[..., None], 0.0)
+    empty = read_mask(dense, (mx, my, mz)).reshape(mz, my, mx) & (count == 0)
+    if empty.any() and (count > 0).any():
+        nearest = distance_transform_edt(count == 0, return_distances=False, return_indices=True)
+        half[empty] = half[tuple(i[empty] for i in nearest)]
+    return np.ascontiguousarray(half, np.float32)
 
 
 def fill_unreached(G: np.ndarray, points: np.ndarray, tree: cKDTree | None, node_G: np.ndarray) -> np.ndarray:

@@ -38,8 +38,8 @@ def unit_points(shape) -> np.ndarray:
 @dataclass
 class MsGrid:
     """A field grid's multiple-scattering grid (field.py bakes L_ms on it): ``coarsen`` times
-    coarser per axis, its ``shape`` (mx, my, mz), the points gathered (``near``, flat: those whose
-    interpolation reaches a baked field point) and where they are (``points``, (M, 3) world,
+    coarser per axis, its ``shape`` (mx, my, mz), the points gathered (``near``, flat: those that
+    the camera's interpolation reads, :func:`read_mask`) and where they are (``points``, (M, 3) world,
     float32), and every point's unit-cube coordinates (``units``, float32, C order)."""
 
     coarsen: int
@@ -96,15 +96,6 @@ def to_world(u2w: np.ndarray, u: np.ndarray) -> np.ndarray:
     return u @ u2w[:3, :3].T + u2w[:3, 3]
 
 
-def coarse_mask(near: np.ndarray, shape, k: int) -> np.ndarray:
-    """Flat mask of the coarse (shape = (mx, my, mz)) grid points whose interpolation reaches a
-    fine point of ``near`` ((nz, ny, nx)): its block's, dilated by one coarse point."""
-    mx, my, mz = shape
-    padded = np.pad(near, [(0, m * k - n) for m, n in zip((mz, my, mx), near.shape, strict=True)])
-    coarse = padded.reshape(mz, k, my, k, mx, k).any(axis=(1, 3, 5))
-    return maximum_filter(coarse, size=3, mode="constant").ravel()
-
-
 def read_mask(dense: np.ndarray, shape) -> np.ndarray:
     """Flat mask of the points of a grid of ``shape`` (mx, my, mz) over the same unit cube that
     trilinear interpolation (clamped at the faces, as a texture is) reads anywhere the fine grid's
@@ -127,17 +118,14 @@ def read_mask(dense: np.ndarray, shape) -> np.ndarray:
     return (out > 0).ravel()
 
 
-def make_ms_grid(fp: FieldPoints, coarsen: int, max_points: int, exact: bool = False) -> MsGrid:
+def make_ms_grid(fp: FieldPoints, coarsen: int, max_points: int) -> MsGrid:
     """The multiple-scattering grid of ``fp``: ``coarsen`` times coarser per axis, or coarser
-    still until at most ``max_points`` of its points are gathered. ``exact``: only the points
-    that the camera's interpolation reads (:func:`read_mask`; an isotropic field's L_ms, kept at
-    this grid's resolution), else :func:`coarse_mask`'s, a point further out (the walks' view
-    terms are halved again, and a half-resolution point reads its block's)."""
-    nx, ny, nz = fp.shape
-    near, k = fp.near.reshape(nz, ny, nx), coarsen
+    still until at most ``max_points`` of its points are gathered: those that the camera's
+    interpolation reads (:func:`read_mask`)."""
+    k = coarsen
     while True:
         shape = tuple(-(-n // k) for n in fp.shape)
-        ms_near = read_mask(fp.sigma_t > 0, shape) if exact else coarse_mask(near, shape, k)
+        ms_near = read_mask(fp.sigma_t > 0, shape)
         if ms_near.sum() <= max_points:
             break
         k += 1
