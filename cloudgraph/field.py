@@ -58,7 +58,7 @@ from .field_ms import (
 )
 from .graph import gradient_operators, node_gradients
 from .image import latlong_directions
-from .light_march import light_depths, march_light, optical_depth
+from .light_march import light_depths, march_light
 from .lights import Lights
 from .mitsuba_scene import envmap_emitter
 from .params import GRADIENT, suns_apart
@@ -72,6 +72,7 @@ from .tracing import (
     envmap_seen,
     from_jit,
     opaque,
+    optical_depth,
     to_jit,
     towards_light,
 )
@@ -263,6 +264,7 @@ def bake_field(
                 "tau_power": np.array([tau_power]),
                 "forward": np.array([forward]),
                 "walks": np.array([walks_per_point(len(q), MS_MAX_POINTS)]),
+                "step": step,
             }
             walked.append(c)
         gathered.append(chunks(builder, "field_ms", inputs))

@@ -1,20 +1,18 @@
 """The bake's light march: the optical depth to each sun from every field point and sub-voxel
-sample (``field_tau`` chunks: a deterministic midpoint march of the trilinear density in
-Dr.Jit, Eq. 4.22 at a point), and each sun's tau_light grid made from it (light_depth.py: at
-twice the field's resolution, or on its own grid fitted to the sub-voxel samples). It needs the
-medium and the lights only: a precompute puts it out first, and it runs beside the graph's build
-(stages.LATE_STAGES)."""
+sample (``field_tau`` chunks: tracing.optical_depth, a deterministic midpoint march of the
+trilinear density in Dr.Jit, Eq. 4.22 at a point), and each sun's tau_light grid made from it
+(light_depth.py: at twice the field's resolution, or on its own grid fitted to the sub-voxel
+samples). It needs the medium and the lights only: a precompute puts it out first, and it runs
+beside the graph's build (stages.LATE_STAGES)."""
 
 from __future__ import annotations
 
-import drjit as dr
-import mitsuba as mi
 import numpy as np
 
 from .chunks import placed
 from .field_grid import FieldPoints, scattered
-from .light_depth import FINE_POWER, TAU_MAX, TAU_POWER, fine_depth, fine_shape, fit_depth
-from .tracing import step_length, towards_light
+from .light_depth import FINE_POWER, TAU_POWER, fine_depth, fine_shape, fit_depth
+from .tracing import towards_light
 
 #: Light march step, in field voxels (midpoint rule).
 TAU_STEP = 0.5
@@ -52,20 +50,3 @@ def light_depths(fp: FieldPoints, marched: list) -> tuple[list, float]:
         else:
             taus.append(fit_depth(tau_grid, fp.sigma_t, fp.sub_centres, samples))
     return taus, FINE_POWER if fine else TAU_POWER
-
-
-@dr.syntax
-def optical_depth(medium, p: mi.Point3f, w: mi.Vector3f, step: float) -> mi.Float:
-    """int_0^boundary sigma_t(p + s w) ds per point, midpoint rule, stopped at TAU_MAX; blocks
-    without density are crossed in one step."""
-    t, t_end = medium.box_interval(p, w)
-    tau = mi.Float(0.0)  # Optical depth accumulator
-    active = t < t_end
-    while dr.hint(active, label="light_march"):
-        sigma_maj, t_leave = medium.block(p, w, t, active)
-        empty = sigma_maj <= 0.0
-        dt = step_length(empty, t, t_leave, t_end, step, 1e-3 * step)
-        tau += dr.select(empty, 0.0, medium.sigma_t(p + (t + 0.5 * dt) * w) * dt)
-        t += dt
-        active &= (t < t_end) & (tau < TAU_MAX)
-    return dr.minimum(tau, TAU_MAX)

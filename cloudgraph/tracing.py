@@ -17,7 +17,7 @@ import mitsuba as mi
 import numpy as np
 from scipy.ndimage import maximum_filter
 
-from .light_depth import depth_floor
+from .light_depth import TAU_MAX, depth_floor
 from .volume import Volume
 
 #: Empty-space blocks, voxels a side.
@@ -444,3 +444,20 @@ def trace_flights(
     p = o + t * d
     dr.eval(p, collided)  # one kernel: read one by one, each output would run the walk again
     return from_jit(p), np.array(collided, bool)
+
+
+@dr.syntax
+def optical_depth(medium, p: mi.Point3f, w: mi.Vector3f, step: float) -> mi.Float:
+    """int_0^boundary sigma_t(p + s w) ds per point, midpoint rule, stopped at TAU_MAX; blocks
+    without density are crossed in one step."""
+    t, t_end = medium.box_interval(p, w)
+    tau = mi.Float(0.0)  # Optical depth accumulator
+    active = t < t_end
+    while dr.hint(active, label="light_march"):
+        sigma_maj, t_leave = medium.block(p, w, t, active)
+        empty = sigma_maj <= 0.0
+        dt = step_length(empty, t, t_leave, t_end, step, 1e-3 * step)
+        tau += dr.select(empty, 0.0, medium.sigma_t(p + (t + 0.5 * dt) * w) * dt)
+        t += dt
+        active &= (t < t_end) & (tau < TAU_MAX)
+    return dr.minimum(tau, TAU_MAX)

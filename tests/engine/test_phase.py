@@ -338,3 +338,27 @@ def test_estimators_without_the_phase_refuse_it(sphere, estimator):
     hg_scene = with_phase(scene, {"type": "hg", "g": 0.5})
     with pytest.raises(SceneError, match=f"estimator '{estimator}' renders the isotropic phase only"):
         graph_renderer(cache, volume, hg_scene).render(hg_scene.camera, 1, estimator=estimator)
+
+
+def test_the_walks_a_point_keeps_follow_what_a_camera_sees_of_it(variant, monkeypatch):
+    # A point of the walked grid that is outside the medium (read only in the cells at its
+    # edge) keeps OUTSIDE_SHARE of its walks, one deeper than DEEP_TAU along every axis
+    # DEEP_SHARE, the rest all of them; the bake divides each point's sums by the walks it kept.
+    import drjit as dr
+    import mitsuba as mi
+
+    import cloudgraph.field_ms as field_ms
+    from cloudgraph.tracing import DensityField
+
+    volume = sphere_volume(32)  # a ball of radius 15 voxels, density 1 a voxel
+    medium = DensityField.from_volume(volume, 1.0)
+    lo, hi = volume.world_bbox()
+    c, r = (lo + hi) / 2, (hi[0] - lo[0]) / 2
+    points = np.array([c, c + [0.6 * r, 0, 0], c + [0.99 * r, 0, 0]], np.float32)  # deep, near, out
+    monkeypatch.setattr(field_ms, "OUTSIDE_SHARE", 0.5)
+    monkeypatch.setattr(field_ms, "DEEP_SHARE", 0.25)
+    monkeypatch.setattr(field_ms, "DEEP_TAU", 10.0)
+    k = 16
+    kept = field_ms._walks_kept(medium, mi.Point3f(*points.T), k, 3 * k, 0.5 * volume.voxel_size[0])
+    taken = np.array(dr.block_sum(mi.Float(kept), k))
+    assert taken.tolist() == [4.0, 16.0, 8.0]  # (optical depth to the box: about 16, 6 and 0)
