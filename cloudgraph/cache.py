@@ -70,10 +70,12 @@ def graph_key(vol_id: str, density_scale: float, build_params: dict) -> str:
 #: factor's P_0 is the walks' own (field_ms.WALK_LIGHT_POWER_0), 9 since the degree-3 harmonics
 #: are at three quarters of their weight (phase.SHAPE_HALF), 10 since the walks take only the
 #: points that the camera's interpolation reads (field_grid.read_mask), 11 since they keep fewer
-#: walks outside the medium and deep inside it (field_ms.OUTSIDE_SHARE, DEEP_SHARE).
+#: walks outside the medium and deep inside it (field_ms.OUTSIDE_SHARE, DEEP_SHARE), 12 since the
+#: points next to those take the nearest one's value (the march reads them a step past the
+#: medium).
 #: Its caches' radiance keys hold it, so that fields baked before are baked again; isotropic keys
 #: are as they were.
-PHASE_FIELD_VERSION = 11
+PHASE_FIELD_VERSION = 12
 
 
 def radiance_key(

@@ -36,7 +36,7 @@ import weakref
 import drjit as dr
 import mitsuba as mi
 import numpy as np
-from scipy.ndimage import distance_transform_edt
+from scipy.ndimage import distance_transform_edt, maximum_filter
 from scipy.spatial import cKDTree
 
 from .chunks import placed
@@ -309,6 +309,10 @@ def bake_field(
                 if c in views:
                     views[c] = views[c] / light_factor(tau, [view_power], MS_LIGHT_RANGE)
     shapes = {c: _halve(v, mask, fp.sigma_t > 0) for c, v in views.items()}  # (smooth: half the resolution)
+    # The march reads L_ms at a segment's end up to a step past the medium (sigma_t the mean of
+    # the ends'): the grid's points next to those gathered take the nearest gathered one's
+    shell = maximum_filter(mask, size=3, mode="constant") & ~mask
+    ms = [_nearest_filled(m, mask, shell) for m in ms]
     progress("field", 1.0)
     t_ms += time.perf_counter() - t0
 
@@ -467,7 +471,8 @@ def _halve(values: np.ndarray, mask: np.ndarray, dense: np.ndarray) -> np.ndarra
     2^3 block's points of ``mask``; a point that the camera's interpolation reads (where the
     field grid's ``dense`` is, :func:`~cloudgraph.field_grid.read_mask`) whose block holds none
     takes the nearest block's that does (a half-resolution point reaches two field voxels past
-    the points gathered). Measured on the bench sphere at g = 0.85: the view's terms at half
+    the points gathered), as do the points next to those (the march reads a segment's end up to
+    a step past the medium). Measured on the bench sphere at g = 0.85: the view's terms at half
     resolution render as at full (binned relMAE 7.75 / 4.29 % side / back-lit against 7.71 /
     4.13 %), in a fifth of the bytes."""
     pads = [(0, n % 2) for n in mask.shape]
@@ -477,11 +482,18 @@ def _halve(values: np.ndarray, mask: np.ndarray, dense: np.ndarray) -> np.ndarra
     total = v.reshape(mz, 2, my, 2, mx, 2, -1).sum(axis=(1, 3, 5))
     count = m.reshape(mz, 2, my, 2, mx, 2).sum(axis=(1, 3, 5))
     half = np.where(count[..., None] > 0, total / np.maximum(count, 1)[..., None], 0.0)
-    empty = read_mask(dense, (mx, my, mz)).reshape(mz, my, mx) & (count == 0)
-    if empty.any() and (count > 0).any():
-        nearest = distance_transform_edt(count == 0, return_distances=False, return_indices=True)
-        half[empty] = half[tuple(i[empty] for i in nearest)]
-    return np.ascontiguousarray(half, np.float32)
+    read = maximum_filter(read_mask(dense, (mx, my, mz)).reshape(mz, my, mx), size=3, mode="constant")
+    return _nearest_filled(half.astype(np.float32), count > 0, read & (count == 0))
+
+
+def _nearest_filled(values: np.ndarray, have: np.ndarray, where: np.ndarray) -> np.ndarray:
+    """(..., C) grid ``values`` with the points of ``where`` ((...) bool) set to the nearest
+    point of ``have``'s value (as they are where nothing has a value)."""
+    values = np.ascontiguousarray(values, np.float32)
+    if where.any() and have.any():
+        nearest = distance_transform_edt(~have, return_distances=False, return_indices=True)
+        values[where] = values[tuple(i[where] for i in nearest)]
+    return values
 
 
 def fill_unreached(G: np.ndarray, points: np.ndarray, tree: cKDTree | None, node_G: np.ndarray) -> np.ndarray:

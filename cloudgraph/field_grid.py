@@ -103,7 +103,8 @@ def read_mask(dense: np.ndarray, shape) -> np.ndarray:
     axis, of a point of ``dense``. Per axis the fine points d reach the coarse points from
     floor(c(d - 1)) to floor(c(d + 1)) + 1, c the coarse coordinate of a fine one (open at the
     ends: a corner of weight 0 is not read); a point of the grid is read where all three axes'
-    reach it from one point of ``dense``."""
+    reach it from one point of ``dense``. (The march also reads a segment's end up to a step
+    past the medium: field.py gives the points next to these their nearest one's value.)"""
     out = dense.astype(np.float32)
     for axis, m in enumerate(shape[::-1]):  # (z, y, x)
         n = dense.shape[axis]

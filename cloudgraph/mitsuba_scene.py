@@ -229,15 +229,29 @@ def envmap_emitter(path: str):
 
     key = (str(path), mi.variant())
     if key not in _ENVMAPS:
+        check_envmap(path)
         try:
-            problem = envmap_problem(np.array(mi.Bitmap(str(path)), np.float32))
-            if problem is None:
-                _ENVMAPS[key] = mi.load_dict({"type": "envmap", "filename": str(path)})
+            _ENVMAPS[key] = mi.load_dict({"type": "envmap", "filename": str(path)})
         except RuntimeError as err:  # Mitsuba's, with the file's problem
             raise SceneError(f"cannot read the environment map {path}: {_last_line(err)}") from err
-        if problem:
-            raise SceneError(f"the environment map {path} {problem}")
     return _ENVMAPS[key]
+
+
+def check_envmap(path: str) -> None:
+    """Reads an environment map's pixels (Mitsuba's reader) and checks them
+    (scene.envmap_problem), keeping nothing.
+
+    Raises:
+        SceneError: the file cannot be read, or its pixels are not radiance.
+    """
+    import mitsuba as mi
+
+    try:
+        problem = envmap_problem(np.array(mi.Bitmap(str(path)), np.float32))
+    except RuntimeError as err:  # Mitsuba's, with the file's problem
+        raise SceneError(f"cannot read the environment map {path}: {_last_line(err)}") from err
+    if problem:
+        raise SceneError(f"the environment map {path} {problem}")
 
 
 def volpath_dict(max_depth: int, rr: bool = False) -> dict:
@@ -279,7 +293,7 @@ def load_mitsuba_scene(scene: Scene, volume: Volume, integrator: dict | None = N
         if light.type == "envmap" and light.path is not None:
             if not os.path.isfile(light.path):
                 raise SceneError(f"environment map not found: {light.path}")
-            envmap_emitter(str(light.path))  # (its pixels checked: scene.envmap_problem)
+            check_envmap(str(light.path))
     spec = scene_dict(scene, volume, integrator)
     try:
         return mi.load_dict(spec)

@@ -45,3 +45,18 @@ def test_the_bake_gathers_the_points_the_camera_reads_and_no_more(fine, k):
     # a corner of a weight near 0)
     if k == 1:  # at the field's own resolution: the field's points, one voxel about the medium
         np.testing.assert_array_equal(mask, maximum_filter(dense, size=3, mode="constant"))
+
+
+def test_the_points_next_to_those_gathered_take_the_nearest_one_s_value():
+    # The march reads L_ms at a segment's end up to a step past the medium: the grid's points
+    # next to those gathered hold the nearest gathered one's value, the rest stay 0.
+    from cloudgraph.field import _nearest_filled
+
+    have = np.zeros((6, 6, 6), bool)
+    have[2:4, 2:4, 2:4] = True
+    values = np.where(have, np.arange(216, dtype=np.float32).reshape(6, 6, 6), 0)[..., None]
+    shell = maximum_filter(have, size=3, mode="constant") & ~have
+    out = _nearest_filled(values, have, shell)[..., 0]
+    np.testing.assert_array_equal(out[have], values[have][:, 0])
+    assert out[1, 1, 1] == values[2, 2, 2, 0] and out[4, 2, 3] == values[3, 2, 3, 0]
+    assert not out[~(have | shell)].any()
