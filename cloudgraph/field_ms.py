@@ -332,7 +332,8 @@ def walk_ms(medium, G_tex, tau, points: np.ndarray, inputs: dict, seed: int) -> 
     along w brings back (phase.phase_walk: the medium's next events exact, the graph's ``G``
     after them; x's own event is the camera's), less the sun's light still in its beam where
     ``inputs["forward"]`` orders of it are the camera march's, in closed form (FORWARD_ORDERS).
-    ``inputs["walks"]`` walks a point (:func:`walks_per_point`), their first directions half
+    ``inputs["walks"]`` walks a point (:func:`walks_per_point`; a share of them outside the
+    medium and deep inside, :func:`_walks_kept`), their first directions half
     uniform and half from the phase about the light (one-sample mixture pdf). ``G_tex``:
     :func:`g_texture` of ``inputs["G"]``; ``tau``: the sun's tau_light texture
     (tracing.depth_texture of ``inputs["tau"]``). Returns c_0 (RGB) and the c_i at unit
