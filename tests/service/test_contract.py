@@ -110,6 +110,8 @@ def test_an_unknown_path_and_a_body_of_another_type_are_named(contract):
             "/v1/renders", content=b"{", headers={"Content-Type": "application/json; charset=utf-8"} | auth
         )
         assert r.status_code == 422  # the type is right: the JSON is not
+        r = c.post("/v1/renders", content=b"{", headers={"Content-Type": "application/vnd.x+json"} | auth)
+        assert r.status_code == 422 and "not valid JSON" in r.json()["detail"]  # (+json: JSON too)
 
 
 def test_schemathesis_finds_no_answer_the_document_does_not_describe(contract, tmp_path):
