@@ -23,7 +23,7 @@ from .build import GraphBuilder, build_graph
 from .cache import CacheStore, cache_keys
 from .chunks import placed
 from .errors import CacheError
-from .field import bake_field, medium_arrays, ms_grid, packed_depth
+from .field import bake_field, lookup_grid, medium_arrays, ms_grid, packed_depth
 from .field_file import RadianceField, combined
 from .field_grid import FieldPoints
 from .graph import Graph
@@ -57,9 +57,9 @@ _KEPT: dict = {}
 
 
 #: The thread that makes the suns' tau_light (light_march.light_depths: numpy, 0.4 s on smoke1)
-#: from the light march, then the file's arrays of the medium (field.medium_arrays) and the grid
-#: that L_ms is gathered on (field.ms_grid), while the graph is read or built and the transport
-#: solved.
+#: from the light march, then the file's arrays of the medium (field.medium_arrays) and the grids
+#: that L_ms is gathered on and G looked up on (field.ms_grid, field.lookup_grid), while the
+#: graph is read or built and the transport solved.
 _DEPTHS = ThreadPoolExecutor(1, thread_name_prefix="field-depths")
 
 
@@ -243,6 +243,7 @@ def precompute(
                 # (then the file's arrays of sigma_t, and the grid that L_ms is gathered on)
                 _DEPTHS.submit(medium_arrays, field_points())
                 _DEPTHS.submit(ms_grid, field_points(), not isotropic and len(lights.directions) > 0)
+                _DEPTHS.submit(lookup_grid, field_points())
 
         if store.graph_path(gkey).is_file():
             march()

@@ -500,3 +500,32 @@ def test_points_no_node_reaches_take_their_nearest_nodes_value():
     np.testing.assert_array_equal(
         fill_unreached(G, points, cKDTree(nodes), node_G), [[1, 1, 1], [5, 5, 5], [2, 0.5, 0]]
     )
+
+
+@pytest.mark.parametrize("eye", ["side", "back"])
+def test_a_large_cloud_s_bake_looks_g_up_on_a_coarser_grid_and_reads_as_gather_does(
+    variant, tmp_path, monkeypatch, eye
+):
+    # A large medium's nodes are looked up on a grid coarser than the field's (field.lookup_grid,
+    # MS_WALK_POINTS: smoke1's 1.26 M field points to 183 k); a smoke-like cloud small enough for a
+    # test, with the limit lowered to match
+    import cloudgraph.field as field_module
+
+    volume, scale = dense_cloud(0.5)  # optical depth 0.5 a voxel at most
+    scene = medium_scene(volume, scale, albedo=0.8, eye_dir=SIDE if eye == "side" else LIGHT, size=32)
+    whole = precompute(scene, volume, "draft", CacheStore(tmp_path / "whole"))
+    assert whole.stats["field_lookup_coarsen"] == 1
+    assert whole.stats["field_lookup_points"] == whole.stats["field_points"]
+    monkeypatch.setattr(field_module, "MS_WALK_POINTS", whole.stats["field_points"] // 4)
+    cache = precompute(scene, volume, "draft", CacheStore(tmp_path / "coarse"))
+    assert cache.stats["field_lookup_coarsen"] == 2 and cache.stats["field_ms_coarsen"] == 1, cache.stats
+    assert cache.stats["field_lookup_points"] <= field_module.MS_WALK_POINTS
+    r = renderer(cache, volume, scene)
+    field = r.render(scene.camera, spp=16, seed=1, estimator="field").astype(np.float64)
+    gather = r.render(scene.camera, spp=1024, seed=1, estimator="gather").astype(np.float64)
+    # measured (32^2, draft), field / gather in the mean and binned relMAE, side- / back-lit:
+    # 0.9996, 0.71 % / 1.0039, 0.82 %; with G at every field point 1.0028, 0.68 % / 1.0075,
+    # 0.96 %. (At optical depth 4 a voxel the coarser G reads 2.6 % lower side-lit: a dense
+    # cloud that large is already read on an L_ms grid 3x coarser, 0.933 of gather.)
+    assert abs(field.mean() / gather.mean() - 1) < 0.012
+    assert rel_mae(field, gather) < 0.012
