@@ -76,19 +76,28 @@ def value_type(tree_type: str) -> str:
     return parts[1] if len(parts) > 2 and parts[0] == "Tree" else tree_type
 
 
+def default_grid(grids: list[tuple[str, str]]) -> str | None:
+    """The grid a scene that names none reads: 'density', else the only scalar float grid
+    (None: there are several and none is named 'density', or there is none)."""
+    names = [n for n, _ in grids]
+    if "density" in names:
+        return "density"
+    floats = [n for n, t in grids if value_type(t) in ("float", "half", "double")]
+    return floats[0] if len(floats) == 1 else None
+
+
 def pick_grid(path: Path, grids: list[tuple[str, str]], grid: str | None) -> tuple[str, str]:
-    """Chooses the named grid, else 'density', else the only float grid."""
+    """Chooses the named grid, else :func:`default_grid`."""
     listing = ", ".join(f"{n!r} ({value_type(t)})" for n, t in grids) or "none"
     by_name = dict(grids)
     if grid is not None:
         if grid not in by_name:
             raise VolumeError(f"{path} has no grid named {grid!r}; its grids: {listing}")
         return grid, by_name[grid]
-    if "density" in by_name:
-        return "density", by_name["density"]
-    floats = [(n, t) for n, t in grids if value_type(t) in ("float", "half", "double")]
-    if len(floats) == 1:
-        return floats[0]
+    default = default_grid(grids)
+    if default is not None:
+        return default, by_name[default]
+    floats = [n for n, t in grids if value_type(t) in ("float", "half", "double")]
     raise VolumeError(
         f"{path} has no grid named 'density' and {len(floats)} scalar grids; "
         f"name one with volume.grid (its grids: {listing})"

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import VolumeError
-from .vdb import VDB_MAGIC, pick_grid, value_type, vdb_grid_table
+from .vdb import VDB_MAGIC, default_grid, pick_grid, value_type, vdb_grid_table
 
 #: Refuse to densify a bounding box with more voxels than this (float32: 4 bytes each).
 DEFAULT_MAX_VOXELS = 256 * 1024 * 1024
@@ -260,19 +260,24 @@ def write_vdb(volume: Volume, path: str | Path, half: bool = False) -> None:
 
 
 def volume_info(path: str | Path) -> dict:
-    """What a volume file holds: its grids with types, and for the density grid the active
-    bounding box in index and world space, the voxel size and the value range."""
+    """What a volume file holds: its grids with types, the grid a scene that names none reads
+    (``grid``; None where the file has several float grids and none named 'density': a scene
+    must name one), and for that grid (else the first float grid) the active bounding box in
+    index and world space, the voxel size and the value range."""
     path = Path(path)
-    grids = []
+    table = []
     if path.is_file() and path.read_bytes()[:3] != b"VOL":
-        grids = [{"name": n, "type": value_type(t)} for n, t in vdb_grid_table(path)]
-    vol = load_volume(path)
+        table = vdb_grid_table(path)
+    floats = [n for n, t in table if value_type(t) in ("float", "half", "double")]
+    ambiguous = bool(table) and default_grid(table) is None and len(floats) > 1
+    vol = load_volume(path, floats[0] if ambiguous else None)
     lo, hi = vol.world_bbox()
     index_max = [a + n - 1 for a, n in zip(vol.index_min, vol.shape, strict=True)]
+    grids = [{"name": n, "type": value_type(t)} for n, t in table]
     return {
         "path": str(path),
         "grids": grids or [{"name": vol.grid, "type": "float"}],
-        "grid": vol.grid,
+        "grid": None if ambiguous else vol.grid,
         "index_bbox": [list(vol.index_min), index_max],
         "world_bbox": [lo.tolist(), hi.tolist()],
         "voxel_size": vol.voxel_size.tolist(),

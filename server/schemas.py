@@ -188,11 +188,16 @@ class VolumePublic(BaseModel):
     format: Literal["vdb", "vol"]
     created: float = Field(description="upload time, seconds since the epoch")
     grids: list[GridPublic]
-    grid: str = Field(description="the density grid scenes use when they name none")
-    index_bbox: list[list[int]] = Field(description="[[x, y, z] min, [x, y, z] max], index space")
+    grid: str | None = Field(
+        description="the density grid scenes use when they name none: 'density', else the only float "
+        "grid; null where there are several and none is named 'density' (a scene must name one)"
+    )
+    index_bbox: list[list[int]] = Field(
+        description="[[x, y, z] min, [x, y, z] max], index space, of `grid` (else the first float grid)"
+    )
     world_bbox: list[list[float]] = Field(description="[[x, y, z] min, [x, y, z] max], world units")
     voxel_size: list[float]
-    value_range: list[float] = Field(description="[min, max] of the density grid")
+    value_range: list[float] = Field(description="[min, max] of `grid` (else the first float grid)")
     active_fraction: float = Field(description="fraction of the bounding box's voxels above 0")
 
 

@@ -133,6 +133,10 @@ def grid_of(spec: VolumeSpec, volumes: VolumeStore, where: str) -> dict:
         raise InputError(f"{where}.scale", f"must be within [{lo:g}, {hi:g}], got {spec.scale:g}")
     name = spec.grid or info["grid"]
     grids = {g["name"]: g for g in info.get("grids", [])}
+    if name is None:
+        floats = ", ".join(repr(n) for n, g in grids.items() if g.get("type") in ("float", "half"))
+        problem = f"is required: the volume has several float grids and none named 'density' ({floats})"
+        raise InputError(f"{where}.grid", problem)
     if name not in grids:
         listing = ", ".join(repr(g) for g in grids) or "none"
         raise InputError(f"{where}.grid", f"the volume has no grid named {shown(name)}; its grids: {listing}")

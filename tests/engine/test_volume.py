@@ -117,6 +117,11 @@ def test_named_grid_else_density_else_only_float_grid(tmp_path):
     assert load_volume(tmp_path / "one.vdb").grid == "heat"
     with pytest.raises(VolumeError, match="name one with volume.grid"):
         load_volume(tmp_path / "two.vdb")
+    # described all the same (an upload is stored): no default grid, the boxes of the first
+    info = volume_info(tmp_path / "two.vdb")
+    assert info["grid"] is None and [g["name"] for g in info["grids"]] == ["smoke", "heat", "vel"]
+    assert info["index_bbox"] == [[0, 0, 0], [1, 1, 1]] and info["value_range"] == [1.0, 1.0]
+    assert volume_info(tmp_path / "one.vdb")["grid"] == "heat"
 
 
 # -------------------------------------------------------------------- bad input

@@ -6,7 +6,7 @@ import hashlib
 
 import pytest
 
-from ..harness import BLENDER, FOG, SMOKE, assert_no_leak, detail, upload
+from ..harness import BLENDER, FOG, SMOKE, assert_no_leak, cache_of, detail, fog_scene, upload, wait_job
 
 
 def test_an_upload_is_stored_under_the_sha256_of_its_bytes_and_described(client, uploads):
@@ -36,6 +36,35 @@ def test_an_upload_is_stored_under_the_sha256_of_its_bytes_and_described(client,
     listed = {v["id"]: v for v in r.json()}
     assert {vid, uploads[BLENDER.name].json()["id"]} <= set(listed)
     assert uploads[BLENDER.name].status_code == 201
+
+
+def test_a_vdb_of_several_float_grids_none_named_density_is_stored_and_scenes_name_one(client, tmp_path):
+    # (a simulation's export: the smoke's density under another name, and its temperature)
+    import numpy as np
+    import pyopenvdb as vdb
+
+    smoke = vdb.read(str(FOG), "density")
+    smoke.name = "smoke"
+    heat = vdb.FloatGrid()
+    heat.name = "temperature"
+    heat.copyFromArray(np.full((4, 4, 4), 300.0, np.float32))
+    path = tmp_path / "sim.vdb"
+    vdb.write(str(path), grids=[smoke, heat])
+    r = upload(client, path)
+    assert r.status_code == 201, r.text
+    info = r.json()
+    assert info["grid"] is None  # no grid a scene reads unless it names one
+    grids = {g["name"]: g for g in info["grids"]}
+    assert grids["temperature"]["value_max"] == 300.0 and grids["temperature"]["dims"] == [4, 4, 4]
+    assert grids["smoke"]["value_max"] == pytest.approx(info["value_range"][1])  # (described: the first)
+    body = cache_of(fog_scene(info["id"]))
+    r = client.post("/v1/caches", json=body)
+    assert r.status_code == 422, r.text
+    assert "volume.grid" in r.text and "is required" in detail(r) and "'temperature'" in detail(r)
+    body["volume"]["grid"] = "smoke"
+    r = client.post("/v1/caches", json=body)
+    assert r.status_code in (200, 202), r.text
+    assert wait_job(client, r.json()["job"].removeprefix("/v1/jobs/"))["status"] == "finished"
 
 
 def test_a_file_that_is_no_volume_is_422_naming_the_upload(svc, client, tmp_path):

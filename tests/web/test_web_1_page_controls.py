@@ -71,6 +71,20 @@ def test_page_modules(page):
     assert r["esc"] == "&lt;a href=&quot;x&quot;&gt;&amp;&#39;"
 
 
+def test_a_volume_of_several_float_grids_none_named_density_is_read_by_its_first(page):
+    """A volume whose description names no default grid (api.md): the page's scenes name the
+    first float grid, the one its boxes and values describe."""
+    r = page.evaluate(
+        """async () => {
+        const s = await import('/js/scene.js');
+        const grids = [{ name: 'vel', type: 'vec3s' }, { name: 'smoke', type: 'float' },
+                       { name: 'heat', type: 'half' }];
+        return [s.densityGrid({ grid: 'density', grids: [] }), s.densityGrid({ grid: null, grids })];
+      }"""
+    )
+    assert r == ["density", "smoke"]
+
+
 def test_upload_volume(page, data_dir):
     page.set_input_files("#volume-file", str(data_dir / "smoke1.vdb"))
     page.wait_for_selector("#upload-state.ok")
