@@ -72,7 +72,8 @@ def graph_key(vol_id: str, density_scale: float, build_params: dict) -> str:
 #: points that the camera's interpolation reads (field_grid.read_mask), 11 since they keep fewer
 #: walks outside the medium and deep inside it (field_ms.OUTSIDE_SHARE, DEEP_SHARE), 12 since the
 #: points next to those take the nearest one's value (the march reads them a step past the
-#: medium), 13 since a large cloud's walks read G looked up on their own grid (field.lookup_grid).
+#: medium), 13 since a large medium's G is looked up on a grid coarser than the field's
+#: (field.lookup_grid; isotropic fields baked before stay, as before).
 #: Its caches' radiance keys hold it, so that fields baked before are baked again; isotropic keys
 #: are as they were.
 PHASE_FIELD_VERSION = 13

@@ -184,7 +184,11 @@ def _cmd_info(args: argparse.Namespace) -> None:
     print(f"{info['path']}")
     for g in info["grids"]:
         print(f"  grid {g['name']!r}: {g['type']}")
-    print(f"  density grid: {info['grid']!r}")
+    if info["grid"] is None:  # (several float grids, none named density: the boxes are the first's)
+        first = next(g["name"] for g in info["grids"] if g["type"] in ("float", "half"))
+        print(f"  density grid: none named (name one with volume.grid); the figures below are of {first!r}")
+    else:
+        print(f"  density grid: {info['grid']!r}")
     print(f"  active bbox (index): {info['index_bbox'][0]} .. {info['index_bbox'][1]}")
     lo, hi = info["world_bbox"]
     print(f"  medium bbox (world): {[round(v, 4) for v in lo]} .. {[round(v, 4) for v in hi]}")

@@ -43,6 +43,8 @@ from .chunks import placed
 from .field_file import RadianceField, component_names, pack_array, shape_name
 from .field_grid import FieldPoints, MsGrid, make_ms_grid, read_mask, scattered
 from .field_ms import (
+    G_POWER,
+    G_POWER_COARSE,
     MS_LIGHT_RANGE,
     MS_STEP,
     forward_orders,
@@ -249,10 +251,12 @@ def bake_field(
         for c, G in enumerate(node_G)
     ]
     step = np.array([MS_STEP * voxel])
+    g_power = np.array([G_POWER_COARSE if grid_G.coarsen > 1 else G_POWER])  # (field_ms.G_POWER_COARSE)
     gathered, walked = [], []
     for c, lk in enumerate(looked):
         G = scattered(grid_G.near, placed(lk, len(grid_G.points), 3), (*grid_G.shape[::-1], 3))
-        inputs = {"points": q, "G": G, "step": step, "sky": np.array([int(lights.kind(c) == "sky")])}
+        inputs = {"points": q, "G": G, "g_power": g_power, "step": step}
+        inputs["sky"] = np.array([int(lights.kind(c) == "sky")])
         if sun_exact and lights.kind(c) == "directional":  # (component c is directional light c)
             # the sun's part of G read where the march is, from tau_light as the camera's march
             # reads it: baked into G at the grid points, its steep fall below a lit surface
@@ -265,6 +269,7 @@ def bake_field(
             inputs = {
                 "points": q,
                 "G": G,
+                "g_power": g_power,
                 "albedo": np.asarray(albedo, np.float32),
                 "to_light": towards_light(lights.directions[c]),
                 "irradiance": lights.cached[c],
@@ -406,7 +411,7 @@ def field_chunk(builder, stage: str, index: int, inputs: dict) -> tuple[np.ndarr
         tau = optical_depth(medium, to_jit(mi.Point3f, q), to_light, step)
         values = np.array(tau, np.float32)[:, None]
     else:
-        G_tex = _once(inputs["G"], g_texture)
+        G_tex = _once(inputs["G"], g_texture, float(inputs["g_power"][0]))
         power = float(inputs["tau_power"][0]) if "tau" in inputs else 0.0
         tau_tex = _once(inputs["tau"], depth_texture, power) if "tau" in inputs else None
         if "lobes" in inputs:

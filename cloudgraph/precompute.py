@@ -240,7 +240,8 @@ def precompute(
                 marched = march_light(field_builder, field_points(), lights.directions, field_chunks)
                 # ... and each sun's tau_light made from it on a thread of its own, as it comes in
                 depths = _DEPTHS.submit(_light_depths, field_points(), marched)
-                # (then the file's arrays of sigma_t, and the grid that L_ms is gathered on)
+                # (then the file's arrays of sigma_t, and the grids that L_ms is gathered on and
+                # G looked up on)
                 _DEPTHS.submit(medium_arrays, field_points())
                 _DEPTHS.submit(ms_grid, field_points(), not isotropic and len(lights.directions) > 0)
                 _DEPTHS.submit(lookup_grid, field_points())

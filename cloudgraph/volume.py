@@ -268,8 +268,9 @@ def volume_info(path: str | Path) -> dict:
     table = []
     if path.is_file() and path.read_bytes()[:3] != b"VOL":
         table = vdb_grid_table(path)
-    floats = [n for n, t in table if value_type(t) in ("float", "half", "double")]
-    ambiguous = bool(table) and default_grid(table) is None and len(floats) > 1
+    scalars = [n for n, t in table if value_type(t) in ("float", "half", "double")]
+    floats = [n for n, t in table if value_type(t) in ("float", "half")]  # (doubles: not readable)
+    ambiguous = bool(table) and default_grid(table) is None and len(scalars) > 1 and bool(floats)
     vol = load_volume(path, floats[0] if ambiguous else None)
     lo, hi = vol.world_bbox()
     index_max = [a + n - 1 for a, n in zip(vol.index_min, vol.shape, strict=True)]

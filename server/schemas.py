@@ -193,12 +193,12 @@ class VolumePublic(BaseModel):
         "grid; null where there are several and none is named 'density' (a scene must name one)"
     )
     index_bbox: list[list[int]] = Field(
-        description="[[x, y, z] min, [x, y, z] max], index space, of `grid` (else the first float grid)"
+        description="[[x, y, z] min, [x, y, z] max], index space, of `grid` (null: of the first float grid)"
     )
-    world_bbox: list[list[float]] = Field(description="[[x, y, z] min, [x, y, z] max], world units")
-    voxel_size: list[float]
-    value_range: list[float] = Field(description="[min, max] of `grid` (else the first float grid)")
-    active_fraction: float = Field(description="fraction of the bounding box's voxels above 0")
+    world_bbox: list[list[float]] = Field(description="[[x, y, z] min, [x, y, z] max], world units, of it")
+    voxel_size: list[float] = Field(description="world units per voxel, per axis, of it")
+    value_range: list[float] = Field(description="[min, max] of it")
+    active_fraction: float = Field(description="fraction of its bounding box's voxels above 0")
 
 
 class EnvironmentPublic(BaseModel):

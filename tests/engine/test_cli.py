@@ -72,6 +72,20 @@ def test_info_prints_the_real_smoke_grid(data_dir):
     np.testing.assert_allclose(info["voxel_size"], [1 / 2.1] * 3, rtol=1e-5)
 
 
+def test_info_of_several_float_grids_none_named_density_says_a_scene_must_name_one(tmp_path):
+    import pyopenvdb as vdb
+
+    smoke, heat = vdb.FloatGrid(), vdb.FloatGrid()
+    smoke.name, heat.name = "smoke", "heat"
+    smoke.fill((0, 0, 0), (1, 1, 1), 1.0, True)
+    heat.fill((0, 0, 0), (3, 3, 3), 2.0, True)
+    vdb.write(str(tmp_path / "sim.vdb"), grids=[smoke, heat])
+    r = cli("info", tmp_path / "sim.vdb")
+    assert r.returncode == 0, r.stderr
+    said = "density grid: none named (name one with volume.grid); the figures below are of 'smoke'"
+    assert said in r.stdout
+
+
 def test_schema_is_json():
     r = cli("schema")
     assert r.returncode == 0 and json.loads(r.stdout)["title"] == "cloudgraph scene spec v1"

@@ -21,7 +21,7 @@ export function defaultDensityScale(info) {
  * "density": api.md) the first float grid, the one the volume's boxes and values describe.
  */
 export function densityGrid(info) {
-  if (info.grid !== null) return info.grid;
+  if (info.grid != null) return info.grid;
   const first = info.grids.find((g) => g.type === "float" || g.type === "half");
   return first ? first.name : null;
 }
@@ -242,7 +242,7 @@ export class ScenePanel {
     const [lo, hi] = info.world_bbox;
     setText(
       this.volumeInfo,
-      `grid “${densityGrid(info)}”${info.grid === null ? " (none is named “density”: the first float grid)" : ""} · voxel ${info.voxel_size[0].toPrecision(3)} · values ` +
+      `grid “${densityGrid(info)}”${info.grid == null ? " (none is named “density”: the first float grid)" : ""} · voxel ${info.voxel_size[0].toPrecision(3)} · values ` +
         `${info.value_range[0].toPrecision(3)}…${info.value_range[1].toPrecision(3)} · world ` +
         `[${lo.map((v) => v.toFixed(1)).join(", ")}] – [${hi.map((v) => v.toFixed(1)).join(", ")}]`,
     );
@@ -308,7 +308,7 @@ export class ScenePanel {
     // One sun alone: a v1 scene's one light; more lights (or the model's sun and sky): v1.1's
     // lights (the cache holds them apart, so their intensities are not part of it: key())
     const lightPart = all.length > 1 || first.type === "sunsky" ? { lights: all } : { light: suns[0] };
-    const volume = info.grid === null ? { id: info.id, grid: densityGrid(info) } : { id: info.id };
+    const volume = info.grid == null ? { id: info.id, grid: densityGrid(info) } : { id: info.id };
     return { volume, medium, ...lightPart, lightPart, quality: this.quality.value };
   }
 
