@@ -89,9 +89,14 @@ from .tracing import (
 MS_COARSEN = 1
 MS_MAX_POINTS = 1 << 17
 MS_WALK_POINTS = 1 << 18
-#: Multiple-scattering grid points per chunk (times field_ms.MS_DIRECTIONS rays), and field points per
-#: chunk of the light march: chunks bound the device memory and may run on other workers.
-MS_CHUNK = 1 << 12
+#: Multiple-scattering grid points per chunk (times field_ms.MS_DIRECTIONS rays; WALK_CHUNK where
+#: they are walked, times the walks a point), and field points per chunk of the light march:
+#: chunks bound the device memory and may run on other workers. 2^14 points a chunk of the
+#: gather in place of 2^12 (each chunk traces its march anew): the held-out cloud's bake 0.125 ->
+#: 0.109 s, 14.6 -> 12.8 % of its precompute, the noise cloud's 0.369 -> 0.330 s (medians of 7,
+#: alternately in one process).
+MS_CHUNK = 1 << 14
+WALK_CHUNK = 1 << 12
 TAU_CHUNK = 1 << 18
 LOOKUP_CHUNK = 1 << 19
 _CHUNK = {"field_tau": TAU_CHUNK, "field_lookup": LOOKUP_CHUNK, "field_ms": MS_CHUNK}
@@ -400,7 +405,7 @@ def field_chunk(builder, stage: str, index: int, inputs: dict) -> tuple[np.ndarr
     order, from any worker (worker/chunks.py), and each gives the same values wherever it runs.
     The points come as inputs: the field's grid (:class:`FieldPoints`, 0.4 s on smoke1) is
     made once, by the coordinator."""
-    size, medium = _CHUNK[stage], builder.field
+    size, medium = _chunk(stage, inputs), builder.field
     a = index * size
     q = np.asarray(inputs["points"][a : a + size], np.float32)
     if stage == "field_lookup":
@@ -452,7 +457,12 @@ def _packed(values: np.ndarray, name: str):
 
 
 def field_chunks(stage: str, inputs: dict) -> int:
-    return -(-len(inputs["points"]) // _CHUNK[stage])
+    return -(-len(inputs["points"]) // _chunk(stage, inputs))
+
+
+def _chunk(stage: str, inputs: dict) -> int:
+    """Points per chunk of a bake's stage (a sun's walks: WALK_CHUNK)."""
+    return WALK_CHUNK if stage == "field_ms" and "lobes" in inputs else _CHUNK[stage]
 
 
 def _lookup(inputs: dict, q: np.ndarray, node_radius: float) -> np.ndarray:
